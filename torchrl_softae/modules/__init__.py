@@ -1,0 +1,15 @@
+"""Learned models and planners."""
+from torchrl_softae.modules.ensemble import EnsembleLinear, EnsembleWorldModel, Normalizer, ensemble_std
+from torchrl_softae.modules.planners import ICEMPlanner, colored_noise
+from torchrl_softae.modules.precision import fast_bf16_available, resolve_planning_dtype
+
+__all__ = [
+    "EnsembleLinear",
+    "EnsembleWorldModel",
+    "Normalizer",
+    "ensemble_std",
+    "ICEMPlanner",
+    "colored_noise",
+    "fast_bf16_available",
+    "resolve_planning_dtype",
+]

@@ -1,0 +1,344 @@
+"""Probabilistic ensemble world model [mu_n, sigma_n] (paper: "Learning Uncertainty Aware Dynamics").
+
+All L members live in stacked weight tensors of shape ``(L, in, out)`` and run in one
+``torch.baddbmm`` per layer: there is no Python loop over members anywhere on the forward path.
+
+Each member ``l`` predicts the normalized state *delta* ``(s' - s - m) / v`` from the normalized
+input ``(s, a)`` together with a bounded log-variance (PETS soft bounds). In original units
+
+    member mean     m_l(s, a) = s + m + v * NN_l(s, a)                  (L, *B, d_s)
+    mean            mu(s, a)  = 1/L sum_l m_l(s, a)                     [mu]
+    epistemic std   sigma     = sqrt(1/(L-1) sum_l (m_l - mu)^2)        [sigma]
+    aleatoric std   sqrt(1/L sum_l var_l(s, a))                         [the noise w_t]
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+from torch.nn import functional as F
+
+__all__ = ["EnsembleLinear", "Normalizer", "EnsembleWorldModel", "ensemble_std"]
+
+
+def ensemble_std(members: torch.Tensor, mean: torch.Tensor | None = None) -> torch.Tensor:
+    """Unbiased std over the leading member dim of ``members`` (L, ...).
+
+    ``Tensor.std(0)`` over a (5, 2000, 58) tensor costs ~50x more than this explicit formula on
+    CPU (measured: 23 ms vs 0.4 ms), enough to double a plan's time.
+    """
+    if mean is None:
+        mean = members.mean(0)
+    n = members.shape[0]
+    return (members - mean).square_().sum(0).div_(max(n - 1, 1)).sqrt_()
+
+
+class EnsembleLinear(nn.Module):
+    """``L`` independent affine maps applied in one batched matmul.
+
+    Args:
+        ensemble_size (int): number of members L.
+        in_features, out_features (int): sizes of each member's layer.
+
+    Shapes: input ``(L, N, in)`` (or ``(N, in)``, shared by all members), output ``(L, N, out)``.
+    """
+
+    def __init__(self, ensemble_size: int, in_features: int, out_features: int):
+        super().__init__()
+        self.ensemble_size = ensemble_size
+        self.in_features = in_features
+        self.out_features = out_features
+        self.weight = nn.Parameter(torch.empty(ensemble_size, in_features, out_features))
+        self.bias = nn.Parameter(torch.empty(ensemble_size, 1, out_features))
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        # nn.Linear's default, drawn independently for every member: the members' different
+        # initializations are what makes their disagreement an epistemic uncertainty.
+        bound = 1.0 / math.sqrt(self.in_features)
+        nn.init.uniform_(self.weight, -bound, bound)
+        nn.init.uniform_(self.bias, -bound, bound)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.dim() == 2:  # shared input: one (N, in) @ (L, in, out) broadcast matmul
+            return torch.matmul(x, self.weight) + self.bias
+        return torch.baddbmm(self.bias, x, self.weight)
+
+    def extra_repr(self) -> str:
+        return f"ensemble_size={self.ensemble_size}, in_features={self.in_features}, out_features={self.out_features}"
+
+
+class Normalizer(nn.Module):
+    """Per-dimension affine normalizer ``(x - loc) / scale`` fitted from data; saved in state_dict."""
+
+    def __init__(self, size: int, eps: float = 1e-6):
+        super().__init__()
+        self.eps = eps
+        self.register_buffer("loc", torch.zeros(size))
+        self.register_buffer("scale", torch.ones(size))
+        self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
+
+    @torch.no_grad()
+    def fit(self, data: torch.Tensor) -> None:
+        data = data.reshape(-1, data.shape[-1]).to(self.loc.dtype)
+        if data.shape[0] < 2:
+            raise ValueError(f"Normalizer.fit needs at least 2 rows, got data of shape {tuple(data.shape)}")
+        if not torch.isfinite(data).all():
+            raise ValueError("Normalizer.fit got NaN/inf values; clean the data before fitting")
+        std = data.std(0)
+        self.loc.copy_(data.mean(0))
+        # A constant dimension keeps unit scale rather than blowing up its normalized values.
+        self.scale.copy_(torch.where(std > self.eps, std, torch.ones_like(std)))
+        self.fitted.fill_(True)
+
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.loc) / self.scale
+
+    def denormalize(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.scale + self.loc
+
+
+class EnsembleWorldModel(TensorDictModuleBase):
+    """L-member probabilistic MLP ensemble predicting the next state [mu_n, sigma_n].
+
+    Args:
+        observation_dim (int): d_s.
+        action_dim (int): d_a.
+        ensemble_size (int): L, number of members. Default 5 (paper, Table S7).
+        num_cells (int): hidden width. Default 256.
+        depth (int): number of hidden layers. Default 4.
+        activation_class: hidden activation. Default ``nn.SiLU``.
+        probabilistic (bool): if ``True`` each member also predicts a bounded log-variance
+            (Gaussian NLL training, aleatoric noise); otherwise the aleatoric std is zero and the
+            model is trained with squared error as in the paper. Default ``True``.
+        min_logvar, max_logvar (float): initial soft bounds of the normalized log-variance.
+        in_keys: keys of the state ``s`` (d_s) and action ``a`` (d_a). Default ``("observation", "action")``.
+        out_keys: keys of the next-state mean [mu], epistemic std [sigma] and aleatoric std.
+            Default ``("loc", "epistemic_std", "aleatoric_std")``.
+
+    Shapes: ``observation`` ``(*B, d_s)``, ``action`` ``(*B, d_a)``; all outputs ``(*B, d_s)``.
+
+    Examples:
+        >>> model = EnsembleWorldModel(3, 1, ensemble_size=5)
+        >>> td = TensorDict({"observation": torch.randn(8, 3), "action": torch.randn(8, 1)}, [8])
+        >>> model(td)["epistemic_std"].shape
+        torch.Size([8, 3])
+    """
+
+    def __init__(
+        self,
+        observation_dim: int,
+        action_dim: int,
+        ensemble_size: int = 5,
+        num_cells: int = 256,
+        depth: int = 4,
+        activation_class: type[nn.Module] = nn.SiLU,
+        probabilistic: bool = True,
+        min_logvar: float = -10.0,
+        max_logvar: float = 0.5,
+        in_keys: Sequence = ("observation", "action"),
+        out_keys: Sequence = ("loc", "epistemic_std", "aleatoric_std"),
+    ):
+        for name, value, low in (
+            ("observation_dim", observation_dim, 1),
+            ("action_dim", action_dim, 1),
+            ("ensemble_size", ensemble_size, 2),
+            ("num_cells", num_cells, 1),
+            ("depth", depth, 1),
+        ):
+            if not isinstance(value, int) or value < low:
+                raise ValueError(f"EnsembleWorldModel: {name}={value!r}, expected an int >= {low}")
+        if len(in_keys) != 2 or len(out_keys) != 3:
+            raise ValueError(f"in_keys must be (state, action) and out_keys (loc, epistemic_std, aleatoric_std), got {in_keys}, {out_keys}")
+        super().__init__()
+        self.in_keys = list(in_keys)
+        self.out_keys = list(out_keys)
+        self.observation_dim = observation_dim
+        self.action_dim = action_dim
+        self.ensemble_size = ensemble_size
+        self.probabilistic = probabilistic
+        self.hparams = dict(
+            observation_dim=observation_dim, action_dim=action_dim, ensemble_size=ensemble_size,
+            num_cells=num_cells, depth=depth, probabilistic=probabilistic,
+            min_logvar=min_logvar, max_logvar=max_logvar,
+        )
+        sizes = [observation_dim + action_dim] + [num_cells] * depth
+        out = 2 * observation_dim if probabilistic else observation_dim
+        self.layers = nn.ModuleList(
+            [EnsembleLinear(ensemble_size, i, o) for i, o in zip(sizes[:-1], sizes[1:])]
+            + [EnsembleLinear(ensemble_size, sizes[-1], out)]
+        )
+        self.activation = activation_class()
+        self.min_logvar = nn.Parameter(torch.full((1, observation_dim), float(min_logvar)))
+        self.max_logvar = nn.Parameter(torch.full((1, observation_dim), float(max_logvar)))
+        self.input_normalizer = Normalizer(observation_dim + action_dim)
+        self.output_normalizer = Normalizer(observation_dim)
+        # Reduced-precision planning: hidden 256x256 layers in this dtype (None = fp32).
+        self.planning_dtype: torch.dtype | None = None
+        self._inference_cache: dict = {}
+
+    # ------------------------------------------------------------------ data fitting
+    @torch.no_grad()
+    def fit_normalizers(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor) -> None:
+        """Fit input (s, a) and output (s' - s) normalizers from transitions of shape (N, d)."""
+        self._check(observation, action)
+        self.input_normalizer.fit(torch.cat([observation, action], -1))
+        self.output_normalizer.fit(next_observation - observation)
+
+    # ------------------------------------------------------------------ input validation
+    def _check(self, observation: torch.Tensor, action: torch.Tensor) -> None:
+        for key, x, d in (
+            (self.in_keys[0], observation, self.observation_dim),
+            (self.in_keys[1], action, self.action_dim),
+        ):
+            if not isinstance(x, torch.Tensor):
+                raise TypeError(f"EnsembleWorldModel: {key!r} must be a tensor, got {type(x).__name__}")
+            if x.shape[-1:] != (d,):
+                raise ValueError(
+                    f"EnsembleWorldModel: {key!r} has shape {tuple(x.shape)}, expected (..., {d})"
+                )
+            if not torch.isfinite(x).all():
+                bad = (~torch.isfinite(x)).nonzero()[0].tolist()
+                raise ValueError(f"EnsembleWorldModel: {key!r} contains NaN/inf (first at index {bad})")
+        if observation.shape[:-1] != action.shape[:-1]:
+            raise ValueError(
+                f"EnsembleWorldModel: batch shapes differ: {self.in_keys[0]!r} {tuple(observation.shape)} "
+                f"vs {self.in_keys[1]!r} {tuple(action.shape)}"
+            )
+
+    # ------------------------------------------------------------------ raw network
+    def _row_split(self, n_rows: int) -> int:
+        """Chunks per member so the batched matmul's batch divides the thread count.
+
+        ``bmm`` parallelizes over its batch: 5 members on 2 threads leave one thread idle a sixth
+        of the time (measured: 20% slower than per-member GEMMs). Splitting each member's rows in
+        ``k`` chunks makes the batch ``L * k`` a multiple of the threads.
+        """
+        threads = torch.get_num_threads()
+        if threads <= 1 or self.ensemble_size % threads == 0:
+            return 1
+        k = threads // math.gcd(threads, self.ensemble_size)
+        return k if n_rows % k == 0 and n_rows >= 8 * k else 1
+
+    def _inference_weights(self, layer: EnsembleLinear, dtype: torch.dtype, k: int, cols: int | None):
+        """``layer``'s weights cast to ``dtype``, first ``cols`` outputs, repeated ``k`` times per member.
+
+        Cached until the parameters change (their version counter moves at every optimizer step).
+        """
+        key = (id(layer), dtype, k, cols)
+        version = (layer.weight._version, layer.bias._version)
+        hit = self._inference_cache.get(key)
+        if hit is None or hit[0] != version:
+            w, b = layer.weight.detach(), layer.bias.detach()
+            if cols is not None:
+                w, b = w[..., :cols], b[..., :cols]
+            if k > 1:
+                w = w.repeat_interleave(k, dim=0)
+                b = b.repeat_interleave(k, dim=0)
+            hit = (version, w.to(dtype).contiguous(), b.to(dtype).contiguous())
+            self._inference_cache[key] = hit
+        return hit[1], hit[2]
+
+    def network(self, x: torch.Tensor, with_logvar: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Raw ensemble on normalized inputs.
+
+        Args:
+            x: ``(N, d_s + d_a)`` shared by all members, or ``(L, N, d_s + d_a)`` one batch per member.
+            with_logvar: compute the log-variance head; planning with deterministic propagation
+                does not need it and skips half of the output layer.
+
+        Returns:
+            normalized delta mean ``(L, N, d_s)`` and bounded normalized log-variance (same shape;
+            ``None`` if not probabilistic or not requested).
+        """
+        d = self.observation_dim
+        want_logvar = self.probabilistic and with_logvar
+        last = len(self.layers) - 1
+        if torch.is_grad_enabled():  # training: plain autograd-friendly layers
+            for layer in self.layers[:last]:
+                x = self.activation(layer(x))
+            y = self.layers[last](x)
+        else:  # inference/planning: thread-balanced batch, optional reduced precision
+            L = self.ensemble_size
+            if x.dim() == 2:
+                x = x.expand(L, *x.shape)
+            n = x.shape[1]
+            lowp = self.planning_dtype or torch.float32
+            # (bf16 bmm kernels are not batch-parallel in the same way: splitting does not pay)
+            k = self._row_split(n) if lowp == torch.float32 else 1
+            x = x.reshape(L * k, n // k, x.shape[-1])
+            for layer in self.layers[:last]:
+                w, b = self._inference_weights(layer, lowp, k, None)
+                x = self.activation(torch.baddbmm(b, x.to(lowp), w))
+            # The output layer stays fp32: sigma is a small difference between members' outputs
+            # and would drown in bf16 rounding of the outputs themselves.
+            cols = None if (want_logvar or not self.probabilistic) else d
+            w, b = self._inference_weights(self.layers[last], torch.float32, k, cols)
+            y = torch.baddbmm(b, x.float(), w).reshape(L, n, -1)
+        if not want_logvar:
+            return y[..., :d], None
+        mean, logvar = y[..., :d], y[..., d:]
+        # PETS soft bounds: smooth clamp of the log-variance into [min_logvar, max_logvar].
+        logvar = self.max_logvar - F.softplus(self.max_logvar - logvar)
+        logvar = self.min_logvar + F.softplus(logvar - self.min_logvar)
+        return mean, logvar
+
+    def normalized_members(
+        self, observation: torch.Tensor, action: torch.Tensor, with_logvar: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Normalized delta predictions for flat inputs.
+
+        ``observation`` ``(N, d_s)`` and ``action`` ``(N, d_a)`` (shared by all members), or with a
+        leading member dim ``(L, N, ...)`` (each member on its own minibatch, for training).
+        """
+        x = self.input_normalizer.normalize(torch.cat([observation, action], -1))
+        return self.network(x, with_logvar)
+
+    def predict_members(
+        self, observation: torch.Tensor, action: torch.Tensor, with_aleatoric: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Every member's next-state mean and aleatoric std in original units.
+
+        Args:
+            observation: ``(*B, d_s)``; action: ``(*B, d_a)``.
+            with_aleatoric: also compute the aleatoric std (else ``None`` is returned for it).
+
+        Returns:
+            ``(L, *B, d_s)`` member means [NN_l(s, a)] and ``(L, *B, d_s)`` aleatoric stds.
+        """
+        batch = observation.shape[:-1]
+        obs = observation.reshape(-1, self.observation_dim)
+        act = action.reshape(-1, self.action_dim)
+        mean, logvar = self.normalized_members(obs, act, with_aleatoric)
+        out = self.output_normalizer
+        members = torch.addcmul(obs + out.loc, out.scale, mean)
+        shape = (self.ensemble_size, *batch, self.observation_dim)
+        if not with_aleatoric:
+            return members.reshape(shape), None
+        ale = torch.zeros_like(members) if logvar is None else out.scale * (0.5 * logvar).exp()
+        return members.reshape(shape), ale.reshape(shape)
+
+    def predict(
+        self, observation: torch.Tensor, action: torch.Tensor, check: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Returns ``(mu, sigma, aleatoric_std, members)``; shapes ``(*B, d_s)`` and ``(L, *B, d_s)``."""
+        if check:
+            self._check(observation, action)
+        members, ale = self.predict_members(observation, action)
+        mu = members.mean(0)
+        sigma = ensemble_std(members, mu)
+        aleatoric = ale.square().mean(0).sqrt()
+        return mu, sigma, aleatoric, members
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs = tensordict.get(self.in_keys[0])
+        act = tensordict.get(self.in_keys[1])
+        mu, sigma, aleatoric, _ = self.predict(obs, act)
+        tensordict.set(self.out_keys[0], mu)
+        tensordict.set(self.out_keys[1], sigma)
+        tensordict.set(self.out_keys[2], aleatoric)
+        return tensordict

@@ -1,0 +1,56 @@
+"""Power-law ("colored") Gaussian noise along time, as iCEM samples action sequences.
+
+A noise with power spectral density ``S(f) ~ 1 / f^beta`` [colored-noise exponent beta]:
+beta = 0 is white noise, beta = 2 Brownian-like; iCEM (Pinneri et al. 2020) uses beta in [0.25, 4]
+so that sampled action sequences are smoother and explore further than white noise.
+Algorithm of Timmer & Koenig (1995): random Fourier coefficients scaled by ``f^(-beta/2)``,
+inverse real FFT, normalized to unit variance.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+__all__ = ["colored_noise"]
+
+
+def colored_noise(
+    exponent: float,
+    shape: tuple[int, ...],
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
+    """Unit-variance power-law noise whose last dimension is time.
+
+    Args:
+        exponent (float): spectral exponent beta >= 0.
+        shape: output shape ``(..., T)``; every leading index is an independent series.
+        generator: torch generator for reproducibility.
+
+    Returns:
+        Tensor of ``shape``.
+    """
+    if exponent < 0:
+        raise ValueError(f"colored_noise: exponent={exponent!r}, expected >= 0")
+    T = shape[-1]
+    if exponent == 0 or T == 1:
+        return torch.randn(shape, generator=generator, dtype=dtype)
+    f = torch.fft.rfftfreq(T, dtype=torch.float64)
+    f[0] = 1.0 / T  # lowest resolvable frequency instead of the DC singularity
+    s = f.pow(-exponent / 2.0)
+    # Expected std of the un-normalized series, to normalize to unit variance.
+    w = s.clone()
+    w[-1] *= (1 + (T % 2)) / 2.0
+    sigma = 2.0 * math.sqrt(float(w[1:].square().sum())) / T
+    n_f = f.shape[0]
+    s = s.to(dtype)
+    re = torch.randn((*shape[:-1], n_f), generator=generator, dtype=dtype) * s
+    im = torch.randn((*shape[:-1], n_f), generator=generator, dtype=dtype) * s
+    if T % 2 == 0:  # the Nyquist coefficient of a real signal is real
+        im[..., -1] = 0.0
+        re[..., -1] *= math.sqrt(2.0)
+    im[..., 0] = 0.0  # and so is the DC coefficient
+    re[..., 0] *= math.sqrt(2.0)
+    y = torch.fft.irfft(torch.complex(re, im), n=T, dim=-1) / sigma
+    return y.to(dtype)

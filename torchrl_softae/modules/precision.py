@@ -1,0 +1,45 @@
+"""Run-time detection of a fast reduced-precision matmul on this CPU."""
+from __future__ import annotations
+
+import functools
+import platform
+
+import torch
+
+__all__ = ["cpu_flags", "fast_bf16_available", "resolve_planning_dtype"]
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_flags() -> frozenset:
+    """CPU feature flags from /proc/cpuinfo (empty off Linux)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return frozenset(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return frozenset()
+
+
+def fast_bf16_available() -> bool:
+    """``True`` when bf16 matmuls run natively (AMX-BF16 or AVX512-BF16 on x86, or Apple/ARM bf16)."""
+    flags = cpu_flags()
+    if {"amx_bf16", "avx512_bf16"} & flags:
+        return True
+    return platform.machine() in ("arm64", "aarch64") and "bf16" in flags
+
+
+def resolve_planning_dtype(precision: str) -> torch.dtype | None:
+    """Map ``"fp32" | "bf16" | "auto"`` to the hidden-layer dtype (``None`` = fp32).
+
+    ``"auto"`` picks bf16 only where the CPU has native bf16 units; ``"bf16"`` forces it
+    (correct everywhere, but slower than fp32 without hardware support).
+    """
+    if precision == "fp32":
+        return None
+    if precision == "bf16":
+        return torch.bfloat16
+    if precision == "auto":
+        return torch.bfloat16 if fast_bf16_available() else None
+    raise ValueError(f"precision={precision!r}, expected one of 'fp32', 'bf16', 'auto'")
