@@ -1,0 +1,85 @@
+"""Tasks as data: a reward of (s, a, s') that plugs into the real env and the model env alike."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+__all__ = ["Task", "TaskReward"]
+
+RewardFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class Task:
+    """A downstream task [r_t in Table S6].
+
+    Args:
+        name: short id used on the command line (``softae evaluate --task NAME``).
+        reward_fn: ``(s, a, s') -> r`` on tensors ``(*B, d_s)``, ``(*B, d_a)``, ``(*B, d_s)``,
+            returning ``(*B,)`` or ``(*B, 1)``; vectorized, so planners score whole populations.
+        horizon: episode length used for evaluation.
+        metrics_fn: optional ``trajectory tensordict -> {name: float}`` success metrics
+            (e.g. final tip error in mm), computed on real rollouts.
+        description: one line for ``--help`` and reports.
+    """
+
+    name: str
+    reward_fn: RewardFn
+    horizon: int
+    metrics_fn: Callable[[TensorDictBase], dict] | None = None
+    description: str = ""
+    params: dict = field(default_factory=dict)
+
+    def reward(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor) -> torch.Tensor:
+        r = self.reward_fn(observation, action, next_observation)
+        if r.shape == observation.shape[:-1]:
+            r = r.unsqueeze(-1)
+        return r
+
+    def metrics(self, trajectory: TensorDictBase) -> dict:
+        return {} if self.metrics_fn is None else dict(self.metrics_fn(trajectory))
+
+
+class TaskReward(Transform):
+    """Replaces the env's reward with ``task.reward(s, a, s')``.
+
+    Works on the real env (the task reward then also is what is reported) and on an
+    :class:`~torchrl_softae.envs.EnsembleModelEnv` for zero-shot planning. Behind a
+    :class:`~torchrl_softae.envs.transforms.HallucinatedControl` (H-UCRL), pass ``action_dim`` so the
+    task sees only the real action ``a``, not the hallucinated ``eta``.
+    """
+
+    def __init__(self, task: Task, action_dim: int | None = None, observation_key="observation", action_key="action"):
+        super().__init__(in_keys=[observation_key], out_keys=["reward"])
+        self.task = task
+        self.action_dim = action_dim
+        self.observation_key = observation_key
+        self.action_key = action_key
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        obs = tensordict.get(self.observation_key)
+        act = tensordict.get(self.action_key)
+        if self.action_dim is not None:
+            act = act[..., : self.action_dim]
+        nxt = next_tensordict.get(self.observation_key)
+        r = self.task.reward(obs, act, nxt).to(nxt.dtype)
+        next_tensordict.set("reward", r)
+        return next_tensordict
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        return next_tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return tensordict_reset
+
+    def transform_reward_spec(self, reward_spec: Composite) -> Composite:
+        reward_spec["reward"] = Unbounded((*reward_spec.shape, 1), device=reward_spec.device)
+        return reward_spec
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(task={self.task.name!r})"
