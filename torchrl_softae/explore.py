@@ -173,7 +173,7 @@ class Explorer:
                 raise CheckpointError(f"checkpoint does not fit this model ({e})") from None
             history = state["history"]
             start = state["episode"] + 1
-            rb = self.run.load_replay_buffer(max(capacity, state["num_transitions"] + 1), state["episode"], state["num_transitions"])
+            rb = self.run.load_replay_buffer(state, capacity)
         else:
             rb = self.run.new_replay_buffer(capacity)
         heldout = heldout_set(self.entry, self.run, cfg.heldout_size)

@@ -24,7 +24,7 @@ def _plt():
 
 def _observations(run: RunDir) -> torch.Tensor:
     state = run.load()
-    rb = run.load_replay_buffer(state["num_transitions"] + 1, state["episode"], state["num_transitions"])
+    rb = run.load_replay_buffer(state)
     return rb.storage[: len(rb)]["observation"]
 
 

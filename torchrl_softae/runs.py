@@ -91,8 +91,10 @@ class RunDir:
         shutil.rmtree(scratch, ignore_errors=True)
         return ReplayBuffer(storage=LazyMemmapStorage(capacity, scratch_dir=str(scratch)), batch_size=64)
 
-    def load_replay_buffer(self, capacity: int, episode: int, expected: int) -> ReplayBuffer:
-        rb = self.new_replay_buffer(capacity)
+    def load_replay_buffer(self, state: dict, capacity: int | None = None) -> ReplayBuffer:
+        """The replay buffer a checkpoint ``state`` names, grown to ``capacity`` if that is larger."""
+        episode, expected = state["episode"], state["num_transitions"]
+        rb = self.new_replay_buffer(state["replay_capacity"])
         dump = self.replay_dump(episode)
         if not dump.exists():
             raise CheckpointError(f"checkpoint names replay dump {dump}, which is missing: the run dir is corrupt")
@@ -102,6 +104,10 @@ class RunDir:
             raise CheckpointError(f"replay dump {dump} is unreadable ({type(e).__name__}: {e})") from None
         if len(rb) != expected:
             raise CheckpointError(f"replay dump {dump} holds {len(rb)} transitions, the checkpoint expects {expected}")
+        if capacity is not None and capacity > state["replay_capacity"]:  # the run was extended
+            data = rb.storage[: len(rb)]
+            rb = self.new_replay_buffer(capacity)
+            rb.extend(data)
         return rb
 
     # ------------------------------------------------------------------ checkpoint
@@ -110,7 +116,8 @@ class RunDir:
         dump = self.replay_dump(episode)
         shutil.rmtree(dump, ignore_errors=True)
         rb.dumps(str(dump))
-        state = {**state, "format": CHECKPOINT_FORMAT, "num_transitions": len(rb), "replay_dump": dump.name}
+        state = {**state, "format": CHECKPOINT_FORMAT, "num_transitions": len(rb), "replay_dump": dump.name,
+                 "replay_capacity": rb.storage.max_size}
         tmp = self.checkpoint_path.with_suffix(".pt.tmp")
         with open(tmp, "wb") as f:
             torch.save(state, f)
@@ -132,7 +139,7 @@ class RunDir:
             ) from None
         if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"{self.checkpoint_path} is not a torchrl_softae checkpoint (format {CHECKPOINT_FORMAT})")
-        for key in ("episode", "config", "model", "history", "num_transitions"):
+        for key in ("episode", "config", "model", "history", "num_transitions", "replay_capacity"):
             if key not in state:
                 raise CheckpointError(f"checkpoint {self.checkpoint_path} lacks {key!r}: it is corrupt")
         return state

@@ -40,6 +40,7 @@ class EnvEntry:
 _ENTRIES: dict[str, EnvEntry] = {}
 _LAZY: dict[str, str] = {  # env id -> module that registers it (imported on first use)
     "Pendulum-v1": "torchrl_softae.envs.classic",
+    "Pendulum-hanging": "torchrl_softae.envs.classic",
     "cartpole-swingup": "torchrl_softae.envs.classic",
 }
 

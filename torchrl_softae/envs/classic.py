@@ -55,10 +55,30 @@ def _pendulum_heldout(n: int, seed: int) -> TensorDict:
     return TensorDict({"observation": f(obs), "action": f(u[:, None]), ("next", "observation"): f(nxt)}, [n])
 
 
-register_env_entry(
-    EnvEntry(
-        env_id="Pendulum-v1",
-        make=lambda: GymEnv("Pendulum-v1"),
+def _make_hanging_pendulum():
+    """Pendulum-v1 whose episodes all start hanging down at rest (th = pi +- 0.05, thdot = 0).
+
+    Random torques (|u| <= 2, below what lifting the pendulum over the top in one push needs)
+    then stay near the bottom, so covering the state space takes deliberate energy pumping:
+    the setting where active exploration should beat random actions.
+    """
+    import gymnasium as gym
+    from torchrl.envs import GymWrapper
+
+    class HangingStart(gym.Wrapper):
+        def reset(self, *, seed=None, options=None):
+            _, info = self.env.reset(seed=seed, options=options)
+            th = math.pi + self.env.unwrapped.np_random.uniform(-0.05, 0.05)
+            self.env.unwrapped.state = np.array([th, 0.0])
+            return np.array([math.cos(th), math.sin(th), 0.0], dtype=np.float32), info
+
+    return GymWrapper(HangingStart(gym.make("Pendulum-v1")))
+
+
+def _pendulum_entry(env_id, make, description):
+    return EnvEntry(
+        env_id=env_id,
+        make=make,
         tasks={
             "swingup": Task("swingup", _swingup_reward, 200, _upright_metrics, "swing up and balance (gymnasium's reward)"),
             "spin": Task("spin", _spin_reward, 200, None, "spin counter-clockwise as fast as possible"),
@@ -67,9 +87,13 @@ register_env_entry(
         projection_labels=("angle [rad]", "angular velocity [rad/s]"),
         heldout=_pendulum_heldout,
         defaults={"episode_length": 200, "planner": {"horizon": 20}},
-        description="gymnasium Pendulum-v1 (3D state, 1 torque)",
+        description=description,
     )
-)
+
+
+register_env_entry(_pendulum_entry("Pendulum-v1", lambda: GymEnv("Pendulum-v1"), "gymnasium Pendulum-v1 (3D state, 1 torque)"))
+register_env_entry(_pendulum_entry("Pendulum-hanging", _make_hanging_pendulum,
+                                   "Pendulum-v1 starting hanging down at rest (exploration must pump energy)"))
 
 # ---------------------------------------------------------------- dm_control cartpole
 # observation = (cart x, cos phi, sin phi, x_dot, phi_dot), action = force in [-1, 1]

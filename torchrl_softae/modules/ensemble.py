@@ -224,18 +224,20 @@ class EnsembleWorldModel(TensorDictModuleBase):
         k = threads // math.gcd(threads, self.ensemble_size)
         return k if n_rows % k == 0 and n_rows >= 8 * k else 1
 
-    def _inference_weights(self, layer: EnsembleLinear, dtype: torch.dtype, k: int, cols: int | None):
-        """``layer``'s weights cast to ``dtype``, first ``cols`` outputs, repeated ``k`` times per member.
+    def _inference_weights(self, layer: EnsembleLinear, dtype: torch.dtype, k: int, cols: int | slice | None):
+        """``layer``'s weights cast to ``dtype``, output columns ``cols`` (an int: the first ``cols``),
+        repeated ``k`` times per member.
 
         Cached until the parameters change (their version counter moves at every optimizer step).
         """
-        key = (id(layer), dtype, k, cols)
+        key = (id(layer), dtype, k, (cols.start, cols.stop) if isinstance(cols, slice) else cols)
         version = (layer.weight._version, layer.bias._version)
         hit = self._inference_cache.get(key)
         if hit is None or hit[0] != version:
             w, b = layer.weight.detach(), layer.bias.detach()
             if cols is not None:
-                w, b = w[..., :cols], b[..., :cols]
+                sl = cols if isinstance(cols, slice) else slice(None, cols)
+                w, b = w[..., sl], b[..., sl]
             if k > 1:
                 w = w.repeat_interleave(k, dim=0)
                 b = b.repeat_interleave(k, dim=0)
@@ -274,18 +276,25 @@ class EnsembleWorldModel(TensorDictModuleBase):
             for layer in self.layers[:last]:
                 w, b = self._inference_weights(layer, lowp, k, None)
                 x = self.activation(torch.baddbmm(b, x.to(lowp), w))
-            # The output layer stays fp32: sigma is a small difference between members' outputs
-            # and would drown in bf16 rounding of the outputs themselves.
-            cols = None if (want_logvar or not self.probabilistic) else d
-            w, b = self._inference_weights(self.layers[last], torch.float32, k, cols)
-            y = torch.baddbmm(b, x.float(), w).reshape(L, n, -1)
+            # The mean head stays fp32: sigma is a small difference between members' outputs and
+            # would drown in bf16 rounding of the outputs themselves. The log-variance head only
+            # scales noise, so it may run in reduced precision.
+            w, b = self._inference_weights(self.layers[last], torch.float32, k, d)
+            mean = torch.baddbmm(b, x.float(), w).reshape(L, n, d)
+            if not want_logvar:
+                return mean, None
+            w, b = self._inference_weights(self.layers[last], lowp, k, slice(d, None))
+            logvar = torch.baddbmm(b, x, w).reshape(L, n, d)
+            return mean, self._bound_logvar(logvar).float()
         if not want_logvar:
             return y[..., :d], None
-        mean, logvar = y[..., :d], y[..., d:]
-        # PETS soft bounds: smooth clamp of the log-variance into [min_logvar, max_logvar].
-        logvar = self.max_logvar - F.softplus(self.max_logvar - logvar)
-        logvar = self.min_logvar + F.softplus(logvar - self.min_logvar)
-        return mean, logvar
+        return y[..., :d], self._bound_logvar(y[..., d:])
+
+    def _bound_logvar(self, logvar: torch.Tensor) -> torch.Tensor:
+        """PETS soft bounds: smooth clamp of the log-variance into [min_logvar, max_logvar]."""
+        hi, lo = self.max_logvar.to(logvar.dtype), self.min_logvar.to(logvar.dtype)
+        logvar = hi - F.softplus(hi - logvar)
+        return lo + F.softplus(logvar - lo)
 
     def normalized_members(
         self, observation: torch.Tensor, action: torch.Tensor, with_logvar: bool = True

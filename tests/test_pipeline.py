@@ -1,0 +1,179 @@
+"""End-to-end: softae explore / evaluate / plot on real gymnasium and dm_control envs (tiny sizes)."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchrl_softae.cli import main
+from torchrl_softae.config import ConfigError, make_config
+from torchrl_softae.evaluate import evaluate_run
+from torchrl_softae.explore import explore
+from torchrl_softae.runs import CheckpointError, RunDir
+
+TINY = [
+    "--set", "model.num_cells=32", "--set", "model.depth=2", "--set", "planner.horizon=5",
+    "--set", "planner.num_candidates=20", "--set", "planner.top_k=4", "--set", "planner.optim_steps=2",
+    "--set", "planner.num_particles=2", "--set", "train.epochs=3", "--set", "train.lr=1e-3",
+    "--set", "heldout_size=200",
+]
+TINY_OVERRIDES = [TINY[i + 1] for i in range(0, len(TINY), 2)]
+
+
+def _explore_argv(run_dir, method="softae", episodes=2, env="Pendulum-v1", length=30, extra=()):
+    return ["explore", "--env", env, "--method", method, "--episodes", str(episodes), "--seed", "0",
+            "--run-dir", str(run_dir), "--episode-length", str(length), "--wandb", "disabled", "--quiet",
+            *TINY, *extra]
+
+
+@pytest.mark.parametrize("method", ["random", "mean-ae", "pets-ae", "softae", "hucrl"])
+def test_two_episode_explore_writes_buffer_checkpoint_logs(tmp_path, method):
+    extra = ["--task", "swingup"] if method == "hucrl" else []
+    assert main(_explore_argv(tmp_path, method, extra=extra)) == 0
+    run = RunDir(tmp_path)
+    state = run.load()
+    assert state["episode"] == 1 and state["num_transitions"] == 60
+    assert (tmp_path / "replay_ep0001").is_dir() and not (tmp_path / "replay_ep0000").exists()
+    rows = [json.loads(l) for l in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["episode"] for r in rows] == [0, 1]
+    assert (tmp_path / "metrics.csv").read_text().startswith("collect_seconds")
+    assert all(r["heldout_nmse"] > 0 and 0 < r["coverage"] <= 1 for r in rows)
+    rb = run.load_replay_buffer(state)
+    assert rb.storage[:60]["observation"].shape == (60, 3)
+
+
+def test_dm_control_cartpole_explores(tmp_path):
+    assert main(_explore_argv(tmp_path, "softae", env="cartpole-swingup", length=20)) == 0
+    state = RunDir(tmp_path).load()
+    assert state["num_transitions"] == 40
+
+
+def _deterministic(history):
+    return [{k: v for k, v in r.items() if "seconds" not in k and "ms" not in k} for r in history]
+
+
+def test_killed_run_resumes_with_identical_results(tmp_path):
+    argv = _explore_argv(tmp_path / "killed", "softae", episodes=5, length=40)
+    cmd = [sys.executable, "-c", "import sys; from torchrl_softae.cli import main; sys.exit(main(sys.argv[1:]))", *argv]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    metrics = tmp_path / "killed" / "metrics.jsonl"
+    deadline = time.time() + 120
+    while time.time() < deadline:  # kill -9 once two episodes are safely on disk
+        if metrics.exists() and len(metrics.read_text().splitlines()) >= 2:
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done_before = len(metrics.read_text().splitlines())
+    assert 2 <= done_before < 5, "the run must be interrupted mid-way for this test to mean anything"
+    assert main(argv) == 0  # same command: resumes
+    resumed = RunDir(tmp_path / "killed").load()
+    assert main(_explore_argv(tmp_path / "straight", "softae", episodes=5, length=40)) == 0
+    straight = RunDir(tmp_path / "straight").load()
+    assert resumed["num_transitions"] == straight["num_transitions"] == 200
+    assert _deterministic(resumed["history"]) == _deterministic(straight["history"])
+    for k, v in straight["model"].items():
+        torch.testing.assert_close(resumed["model"][k], v, rtol=0, atol=0)
+
+
+def test_evaluation_reproduces_from_saved_run(tmp_path):
+    assert main(_explore_argv(tmp_path, "softae")) == 0
+    a = evaluate_run(tmp_path, tasks=["swingup"], episodes=1, progress=False)
+    b = evaluate_run(tmp_path, tasks=["swingup"], episodes=1, progress=False)
+    assert a["tasks"]["swingup"]["returns"] == b["tasks"]["swingup"]["returns"]
+    saved = json.loads((tmp_path / "eval" / "swingup.json").read_text())
+    assert saved["returns"] == b["tasks"]["swingup"]["returns"]
+    assert a["heldout_nmse"] == json.loads((tmp_path / "eval" / "model_accuracy.json").read_text())["heldout_nmse"]
+    assert "upright_fraction_last_half" in saved["metrics"][0]
+
+
+def test_swingup_task_reward_matches_gymnasium():
+    """The task reward computed from observations equals Pendulum-v1's own reward."""
+    from torchrl.envs import GymEnv
+
+    from torchrl_softae.envs.catalog import get_env_entry
+
+    task = get_env_entry("Pendulum-v1").tasks["swingup"]
+    env = GymEnv("Pendulum-v1")
+    env.set_seed(0)
+    traj = env.rollout(50)
+    r = task.reward(traj["observation"], traj["action"], traj["next", "observation"])
+    torch.testing.assert_close(r, traj["next", "reward"], atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "kwargs, overrides, match",
+    [
+        (dict(env="Pendulum-v1", method="ucb"), [], "valid methods: random, mean-ae, pets-ae, softae, hucrl"),
+        (dict(env="Acrobot-v7", method="softae"), [], "valid envs: .*Pendulum-v1"),
+        (dict(env="Pendulum-v1", method="hucrl"), [], "pass --task, one of spin, swingup"),
+        (dict(env="Pendulum-v1", method="softae", task="fly"), [], "valid tasks: spin, swingup"),
+        (dict(env="Pendulum-v1", method="softae"), ["planner.horizon=-3"], "planner.horizon=-3"),
+        (dict(env="Pendulum-v1", method="softae"), ["planner.horizn=3"], "valid keys here: horizon"),
+        (dict(env="Pendulum-v1", method="softae"), ["beta=-1"], "beta=-1"),
+    ],
+)
+def test_config_validation(kwargs, overrides, match):
+    with pytest.raises(ConfigError, match=match):
+        make_config(kwargs.pop("env"), kwargs.pop("method"), overrides, **kwargs)
+
+
+def test_cli_reports_config_errors(tmp_path, capsys):
+    assert main(["explore", "--method", "nope", "--run-dir", str(tmp_path), "--wandb", "disabled"]) == 2
+    assert "valid methods" in capsys.readouterr().err
+
+
+def test_corrupt_and_mismatched_checkpoints_are_refused(tmp_path):
+    assert main(_explore_argv(tmp_path, "random")) == 0
+    # a different config in the same run dir is refused, naming the difference
+    with pytest.raises(ConfigError, match="planner.horizon: stored 5 != requested 6"):
+        cfg = make_config("Pendulum-v1", "random", TINY_OVERRIDES + ["planner.horizon=6"], episodes=2,
+                          episode_length=30, wandb="disabled")
+        explore(cfg, tmp_path, progress=False)
+    (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="corrupt"):
+        cfg = make_config("Pendulum-v1", "random", TINY_OVERRIDES, episodes=3, episode_length=30, wandb="disabled")
+        explore(cfg, tmp_path, progress=False)
+    with pytest.raises(CheckpointError, match="corrupt"):
+        evaluate_run(tmp_path)
+
+
+def test_more_episodes_extend_a_finished_run(tmp_path):
+    assert main(_explore_argv(tmp_path, "random", episodes=1)) == 0
+    assert main(_explore_argv(tmp_path, "random", episodes=2)) == 0
+    assert RunDir(tmp_path).load()["num_transitions"] == 60
+
+
+def test_plots_are_written(tmp_path):
+    for m in ("random", "softae"):
+        assert main(_explore_argv(tmp_path / m, m)) == 0
+    assert main(["plot", "--run-dir", str(tmp_path)]) == 0
+    for name in ("mse_bars.png", "coverage_by_method.png"):
+        assert (tmp_path / "plots" / name).stat().st_size > 1000
+    assert (tmp_path / "softae" / "plots" / "coverage.png").stat().st_size > 1000
+
+
+def test_sweep_file_expands_to_grid(capsys):
+    root = Path(__file__).resolve().parents[1]
+    assert main(["sweep", str(root / "sweeps" / "pendulum.yaml"), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("softae explore") == 4 * 3 * 2
+    assert "--method=pets-ae" in out and "--beta=1.0" in out
+
+
+def test_softae_covers_more_than_random(tmp_path):
+    """From a hanging start, active exploration visits far more of the (angle, velocity) plane
+    than random torques, which cannot pump the pendulum over the top."""
+    settings = ["model.num_cells=64", "model.depth=2", "planner.horizon=10", "planner.num_candidates=40",
+                "planner.top_k=5", "planner.optim_steps=3", "planner.num_particles=2", "train.lr=3e-3",
+                "train.epochs=20", "heldout_size=200"]
+    cov = {}
+    for m in ("random", "softae"):
+        cfg = make_config("Pendulum-hanging", m, settings, episodes=3, episode_length=100, wandb="disabled")
+        cov[m] = explore(cfg, tmp_path / m, progress=False)[-1]["coverage"]
+    assert cov["softae"] > 2 * cov["random"], cov

@@ -1,0 +1,297 @@
+"""Soft continuum arm: a clamped Cosserat rod in PyElastica (paper: "Soft Continuum Arm via
+Cosserat Rod Simulation"; supplement Table S1 state layout, Table S6 reward).
+
+Physics (after Naughton et al. 2021, 3-D tracking case): a 1 m rod of radius 5 cm, density
+1000 kg/m^3, Young's modulus 1 MPa (Poisson 0.5), 20 elements, clamped at the origin and pointing
+up (+z), analytical linear damping, PositionVerlet with dt = 2e-4 s; optional gravity (-z).
+Actuation: internal couples in the local normal (d1) and binormal (d2) directions whose profile
+along the arm is a cubic spline through 6 equidistant control points; action [-1, 1]^12 =
+(normal 0:6, binormal 6:12) scaled by ``max_torque`` [N m]. One control step = 100 substeps
+= 20 ms, so 200 steps = 4 s, several times the arm's slowest bending period.
+
+Observation (Table S1), with P observed points evenly spaced along the rod (P = 5 -> 58D,
+P = 11 -> 136D), all in the base frame: point positions (3P), point linear velocities (3P),
+orientations of the P-1 segments between points as unit quaternions (w, x, y, z), w >= 0
+(4(P-1)), and their angular velocities in the base frame (3(P-1)).
+"""
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+__all__ = ["SoftArmEnv", "reach_reward", "ARM_TARGETS", "arm_layout"]
+
+
+def reach_reward(distance, tolerance: float = 5e-3, scale: float = 0.02):
+    """g(d) in (0, 1]: 1 within ``tolerance`` (5 mm), then a long (1/d) tail: 1 / (1 + (d - tol) / scale).
+
+    Works on floats, numpy arrays and torch tensors alike.
+    """
+    excess = (distance - tolerance) / scale
+    if hasattr(excess, "clamp"):
+        excess = excess.clamp(min=0.0)
+    else:
+        excess = np.maximum(excess, 0.0)
+    return 1.0 / (1.0 + excess)
+
+
+def arm_layout(points: int) -> dict[str, slice]:
+    """Index ranges of the observation for ``points`` observed points (Table S1)."""
+    p, s = 3 * points, points - 1
+    return {
+        "positions": slice(0, p),
+        "velocities": slice(p, 2 * p),
+        "orientations": slice(2 * p, 2 * p + 4 * s),
+        "angular_velocities": slice(2 * p + 4 * s, 2 * p + 7 * s),
+    }
+
+
+# Targets of tasks (i) and (ii): tip positions the arm reaches at steady state under a constant
+# action (so they are reachable by construction), written out for readability and checked in tests.
+ARM_TARGETS = {
+    "reach-close": np.array([0.2394, 0.0, 0.9577]),
+    "reach-far": np.array([0.5794, 0.3344, 0.5545]),
+}
+
+
+def _rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices -> (N, 4) quaternions (w, x, y, z) with w >= 0."""
+    w = np.sqrt(np.maximum(0.0, 1.0 + R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2])) / 2
+    x = np.sqrt(np.maximum(0.0, 1.0 + R[:, 0, 0] - R[:, 1, 1] - R[:, 2, 2])) / 2
+    y = np.sqrt(np.maximum(0.0, 1.0 - R[:, 0, 0] + R[:, 1, 1] - R[:, 2, 2])) / 2
+    z = np.sqrt(np.maximum(0.0, 1.0 - R[:, 0, 0] - R[:, 1, 1] + R[:, 2, 2])) / 2
+    x = np.copysign(x, R[:, 2, 1] - R[:, 1, 2])
+    y = np.copysign(y, R[:, 0, 2] - R[:, 2, 0])
+    z = np.copysign(z, R[:, 1, 0] - R[:, 0, 1])
+    q = np.stack([w, x, y, z], -1)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def _spline_basis(n_interfaces: int, n_control: int = 6) -> np.ndarray:
+    """(n_interfaces, n_control) matrix mapping control-point values to the torque profile:
+    the natural cubic spline through ``n_control`` equidistant points on s in [0, 1]."""
+    from scipy.interpolate import CubicSpline
+
+    xs = np.linspace(0.0, 1.0, n_control)
+    s = np.linspace(0.0, 1.0, n_interfaces + 2)[1:-1]  # interior element interfaces
+    return np.stack([CubicSpline(xs, np.eye(n_control)[i], bc_type="natural")(s) for i in range(n_control)], 1)
+
+
+class SoftArmEnv(gym.Env):
+    """Clamped Cosserat-rod arm with 12 spline-profiled bending torques.
+
+    Args:
+        observed_points (int): 5 (58D state) or 11 (136D). Default 5.
+        task (str, optional): ``"reach-close"`` (i), ``"reach-far"`` (ii), ``"reach-random"``
+            (target uniform from the reachable workspace at every reset) or ``None`` (reward 0:
+            task-agnostic exploration).
+        target (array, optional): explicit target position (overrides ``task``'s).
+        max_torque (float): torque at action 1 [N m]. Default 2.0.
+        gravity (bool): add gravity along -z. Default False.
+        n_elements (int): internal elements (a multiple of ``observed_points - 1``). Default 20.
+        max_episode_steps (int): truncation. Default 200.
+        divergence_velocity (float): speed [m/s] above which the rod counts as diverged.
+
+    ``info`` holds ``tip`` (position), ``distance`` to the target, and ``diverged`` (bool).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    dt = 2e-4
+    substeps = 100  # control period 20 ms
+
+    def __init__(
+        self,
+        observed_points: int = 5,
+        task: str | None = None,
+        target=None,
+        max_torque: float = 2.0,
+        gravity: bool = False,
+        n_elements: int = 20,
+        max_episode_steps: int = 200,
+        divergence_velocity: float = 50.0,
+        render_mode: str | None = None,
+    ):
+        if observed_points < 2 or n_elements % (observed_points - 1):
+            raise ValueError(
+                f"SoftArmEnv: n_elements={n_elements} must be a multiple of observed_points - 1 = {observed_points - 1}"
+            )
+        if task not in (None, "reach-close", "reach-far", "reach-random"):
+            raise ValueError(f"SoftArmEnv: task={task!r}; valid: reach-close, reach-far, reach-random, None")
+        self.observed_points = observed_points
+        self.n_elements = n_elements
+        self.task = task
+        self.max_torque = float(max_torque)
+        self.gravity = gravity
+        self.max_episode_steps = max_episode_steps
+        self.divergence_velocity = divergence_velocity
+        self.render_mode = render_mode
+        self._fixed_target = None if target is None else np.asarray(target, dtype=np.float64)
+        d = 3 * observed_points * 2 + 7 * (observed_points - 1)
+        self.observation_space = spaces.Box(-np.inf, np.inf, (d,), dtype=np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (12,), dtype=np.float32)
+        self._basis = _spline_basis(n_elements - 1)
+        self._build()
+        self.target = self._initial_target()
+        self._steps = 0
+
+    # ------------------------------------------------------------------ simulator
+    def _build(self) -> None:
+        import elastica as ea
+        from elastica.timestepper.symplectic_steppers import PositionVerlet
+
+        class ArmSimulator(ea.BaseSystemCollection, ea.Constraints, ea.Forcing, ea.Damping):
+            pass
+
+        E, nu, radius, length, density = 1e6, 0.5, 0.05, 1.0, 1000.0
+        self.length = length
+        sim = ArmSimulator()
+        rod = ea.CosseratRod.straight_rod(
+            self.n_elements, np.zeros(3), np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]),
+            length, radius, density, youngs_modulus=E, shear_modulus=E / (2 * (1 + nu)),
+        )
+        sim.append(rod)
+        sim.constrain(rod).using(ea.OneEndFixedBC, constrained_position_idx=(0,), constrained_director_idx=(0,))
+        sim.dampen(rod).using(ea.AnalyticalLinearDamper, uniform_damping_constant=2.0, time_step=self.dt)
+        env = self
+
+        class SplineTorques(ea.NoForces):
+            """Internal couples along d1/d2 with the current spline profile (equal and opposite on
+            neighbouring elements, so the arm bends without any net external torque)."""
+
+            def apply_torques(self, system, time=0.0):
+                local = env._couples  # (3, n_elements - 1), local frame of the element above each interface
+                Q = system.director_collection  # (3, 3, n): rows = d1, d2, d3 in lab coordinates
+                lab = np.einsum("jin,jn->in", Q[:, :, 1:], local)  # to the lab frame
+                system.external_torques[:, 1:] += local
+                system.external_torques[:, :-1] -= np.einsum("ijn,jn->in", Q[:, :, :-1], lab)
+
+        self._couples = np.zeros((3, self.n_elements - 1))
+        sim.add_forcing_to(rod).using(SplineTorques)
+        if self.gravity:
+            sim.add_forcing_to(rod).using(ea.GravityForces, acc_gravity=np.array([0.0, 0.0, -9.81]))
+        sim.finalize()
+        self._sim, self._rod, self._stepper, self._time = sim, rod, PositionVerlet(), 0.0
+        self._state_keys = ("position_collection", "velocity_collection", "director_collection",
+                            "omega_collection", "acceleration_collection", "alpha_collection")
+        self._initial_state = {k: getattr(rod, k).copy() for k in self._state_keys}
+
+    def _restore(self) -> None:
+        for k, v in self._initial_state.items():
+            getattr(self._rod, k)[...] = v
+        self._time = 0.0
+
+    def _initial_target(self):
+        if self._fixed_target is not None:
+            return self._fixed_target.copy()
+        if self.task in ARM_TARGETS:
+            return ARM_TARGETS[self.task].copy()
+        return np.array([0.0, 0.0, self.length])  # placeholder until reset samples one
+
+    # ------------------------------------------------------------------ observation
+    def _observe(self) -> np.ndarray:
+        rod, P = self._rod, self.observed_points
+        stride = self.n_elements // (P - 1)
+        nodes = np.arange(0, self.n_elements + 1, stride)
+        base = rod.position_collection[:, 0]
+        pos = (rod.position_collection[:, nodes].T - base).reshape(-1)
+        vel = rod.velocity_collection[:, nodes].T.reshape(-1)
+        mid = np.arange(P - 1) * stride + stride // 2  # middle element of each segment
+        R = np.transpose(rod.director_collection[:, :, mid], (2, 1, 0))  # local -> lab (Q^T)
+        quat = _rotation_to_quaternion(R).reshape(-1)
+        # segment angular velocity: mean of its elements' omega (local frame), rotated to the lab frame
+        omega_lab = np.einsum("jin,jn->ni", rod.director_collection, rod.omega_collection)
+        omega = omega_lab.reshape(P - 1, stride, 3).mean(1).reshape(-1)
+        return np.concatenate([pos, vel, quat, omega]).astype(np.float32)
+
+    @property
+    def tip(self) -> np.ndarray:
+        return (self._rod.position_collection[:, -1] - self._rod.position_collection[:, 0]).copy()
+
+    def _info(self, diverged=False) -> dict:
+        tip = self.tip
+        return {"tip": tip, "target": self.target.copy(), "distance": float(np.linalg.norm(tip - self.target)),
+                "diverged": diverged}
+
+    # ------------------------------------------------------------------ gym API
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self._restore()
+        self._couples[...] = 0.0
+        self._steps = 0
+        if self._fixed_target is None and self.task == "reach-random":
+            self.target = sample_reachable_target(self.np_random)
+        elif options and "target" in options:
+            self.target = np.asarray(options["target"], dtype=np.float64)
+        else:
+            self.target = self._initial_target()
+        return self._observe(), self._info()
+
+    def set_action(self, action) -> None:
+        a = np.asarray(action, dtype=np.float64).reshape(12)
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"SoftArmEnv: action contains NaN/inf: {a}")
+        if np.any(np.abs(a) > 1.0 + 1e-6):
+            raise ValueError(f"SoftArmEnv: action {a} is outside the action space [-1, 1]^12")
+        torque = self.max_torque * a
+        self._couples[0] = self._basis @ torque[:6]  # normal (d1)
+        self._couples[1] = self._basis @ torque[6:]  # binormal (d2)
+
+    def step(self, action):
+        self.set_action(action)
+        diverged = False
+        with np.errstate(all="ignore"):
+            for _ in range(self.substeps):
+                self._time = self._stepper.step(self._sim, self._time, self.dt)
+            obs = self._observe()
+            speed = np.abs(self._rod.velocity_collection).max()
+        if not np.all(np.isfinite(obs)) or not speed < self.divergence_velocity:
+            diverged = True
+        self._steps += 1
+        info = self._info(diverged)
+        reward = 0.0 if self.task is None or diverged else float(reach_reward(info["distance"]))
+        truncated = self._steps >= self.max_episode_steps
+        return obs, reward, diverged, truncated, info
+
+    def render(self):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        p = self._rod.position_collection
+        fig = plt.figure(figsize=(4, 4), dpi=80)
+        ax = fig.add_subplot(projection="3d")
+        ax.plot(p[0], p[1], p[2], "-", lw=6, color="tab:orange")
+        ax.scatter(*self.target, color="tab:green", s=40)
+        ax.set_xlim(-1, 1), ax.set_ylim(-1, 1), ax.set_zlim(-0.2, 1.1)
+        ax.set_xlabel("x"), ax.set_ylabel("y"), ax.set_zlabel("z")
+        fig.canvas.draw()
+        frame = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+        plt.close(fig)
+        return frame
+
+    def close(self):
+        pass
+
+
+def settle_tip(env: SoftArmEnv, action, steps: int = 100) -> np.ndarray:
+    """Tip position after holding ``action`` from rest for ``steps`` control steps."""
+    env.reset()
+    for _ in range(steps):
+        env.step(action)
+    return env.tip
+
+
+_TARGET_ENV = None
+
+
+def sample_reachable_target(rng: np.random.Generator) -> np.ndarray:
+    """A target uniform over reachable tips: settle the arm under a uniform random constant action."""
+    global _TARGET_ENV
+    if _TARGET_ENV is None:
+        _TARGET_ENV = SoftArmEnv()
+    return settle_tip(_TARGET_ENV, rng.uniform(-1, 1, 12))
