@@ -143,6 +143,20 @@ def main():
                        fraction_of_fp32_peak=frac, iterations=iters)
             results["rows"].append(row)
             print(f"| {name} ({d_s},{d_a}) | {H} | {key} | {t * 1e3:.1f} | {base / t:.2f}x | {100 * frac:.0f}% |", flush=True)
+    # compact summary (as in the README): ms per action and speed-up over CEMPlanner
+    order = ["cem-torchrl", "icem-fp32-full", "icem-loop-full", "icem-bf16-full", "icem-fp32-dedup",
+             "icem-bf16-dedup", "icem-deadline"]
+    print("\n| (d_s, d_a), H | " + " | ".join(order) + " |")
+    print("|---" * (len(order) + 1) + "|")
+    for name, d_s, d_a, H in shapes:
+        rr = {r["planner"]: r for r in results["rows"] if r["shape"] == name}
+        cells = [f"{rr[k]['seconds'] * 1e3:.0f} ms ({rr[k]['speedup_vs_cem']:.1f}x)" for k in order]
+        print(f"| ({d_s}, {d_a}), H={H} | " + " | ".join(cells) + " |")
+    for name, d_s, d_a, H in shapes:
+        rr = {r["planner"]: r for r in results["rows"] if r["shape"] == name}
+        print(f"{name}: bf16/fp32 full {rr['icem-fp32-full']['seconds'] / rr['icem-bf16-full']['seconds']:.2f}x, "
+              f"bf16/fp32 dedup {rr['icem-fp32-dedup']['seconds'] / rr['icem-bf16-dedup']['seconds']:.2f}x, "
+              f"batched vs loop (fp32 full) {rr['icem-loop-full']['seconds'] / rr['icem-fp32-full']['seconds']:.2f}x")
     os.makedirs(Path(args.out).parent, exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(results, f, indent=1)

@@ -1,2 +1,21 @@
-"""torchrl_softae: active exploration of soft-robot dynamics (SoftAE) as TorchRL components."""
+"""torchrl_softae: active exploration of soft-robot dynamics (SoftAE) as TorchRL components.
+
+Importing the package registers its gymnasium ids (cheap: simulators load on first ``make``):
+``SoftArm-v0`` (58D), ``SoftArm136-v0`` (136D).
+"""
 __version__ = "0.1.0"
+
+
+def _register_gym_ids() -> None:
+    import gymnasium as gym
+
+    ids = {
+        "SoftArm-v0": ("torchrl_softae.envs.soft_arm:SoftArmEnv", {"observed_points": 5}, 200),
+        "SoftArm136-v0": ("torchrl_softae.envs.soft_arm:SoftArmEnv", {"observed_points": 11}, 200),
+    }
+    for env_id, (entry_point, kwargs, steps) in ids.items():
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=entry_point, kwargs=kwargs, max_episode_steps=steps)
+
+
+_register_gym_ids()

@@ -9,6 +9,7 @@ For episode n = 1..N:
 from __future__ import annotations
 
 import math
+import os
 import random
 import time
 import uuid
@@ -64,13 +65,30 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
 
 
+def _cache_dir() -> Path:
+    import os
+
+    root = os.environ.get("TORCHRL_SOFTAE_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")), "torchrl_softae")
+    return Path(root)
+
+
 def heldout_set(entry: EnvEntry, run: RunDir | None, size: int, seed: int = 12345) -> TensorDictBase:
-    """The env's held-out transitions, cached in the run dir."""
+    """The env's held-out transitions: cached in the run dir and in a per-user cache
+    (``$TORCHRL_SOFTAE_CACHE``, default ``~/.cache/torchrl_softae``), since simulators are slow."""
     if run is not None and run.heldout_path.exists():
         td = torch.load(run.heldout_path, weights_only=False)
         if td.shape[0] == size:
             return td
-    td = entry.heldout(size, seed)
+    cached = _cache_dir() / "heldout" / f"{entry.env_id}-{size}-{seed}.pt"
+    if cached.exists():
+        td = torch.load(cached, weights_only=False)
+    else:
+        td = entry.heldout(size, seed)
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cached.with_suffix(f".{os.getpid()}.tmp")
+        torch.save(td, tmp)
+        tmp.replace(cached)
     if run is not None:
         tmp = run.heldout_path.with_suffix(".tmp")
         torch.save(td, tmp)

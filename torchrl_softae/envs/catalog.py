@@ -42,6 +42,8 @@ _LAZY: dict[str, str] = {  # env id -> module that registers it (imported on fir
     "Pendulum-v1": "torchrl_softae.envs.classic",
     "Pendulum-hanging": "torchrl_softae.envs.classic",
     "cartpole-swingup": "torchrl_softae.envs.classic",
+    "SoftArm-v0": "torchrl_softae.envs.arm_entry",
+    "SoftArm136-v0": "torchrl_softae.envs.arm_entry",
 }
 
 

@@ -51,9 +51,15 @@ def arm_layout(points: int) -> dict[str, slice]:
 
 # Targets of tasks (i) and (ii): tip positions the arm reaches at steady state under a constant
 # action (so they are reachable by construction), written out for readability and checked in tests.
+# (i): binormal 0.3 everywhere (about 17 degrees at the tip); (ii): normal -0.6 and binormal 0.9
+# (about 65 degrees, near the workspace edge); both settled for 400 control steps.
 ARM_TARGETS = {
-    "reach-close": np.array([0.2394, 0.0, 0.9577]),
-    "reach-far": np.array([0.5794, 0.3344, 0.5545]),
+    "reach-close": np.array([0.2819, 0.0, 0.9433]),
+    "reach-far": np.array([0.5835, 0.3890, 0.4054]),
+}
+ARM_TARGET_ACTIONS = {
+    "reach-close": np.r_[np.zeros(6), 0.3 * np.ones(6)],
+    "reach-far": np.r_[-0.6 * np.ones(6), 0.9 * np.ones(6)],
 }
 
 
@@ -89,7 +95,7 @@ class SoftArmEnv(gym.Env):
             (target uniform from the reachable workspace at every reset) or ``None`` (reward 0:
             task-agnostic exploration).
         target (array, optional): explicit target position (overrides ``task``'s).
-        max_torque (float): torque at action 1 [N m]. Default 2.0.
+        max_torque (float): torque at action 1 [N m]. Default 10 (about 100 degrees of bending at full action).
         gravity (bool): add gravity along -z. Default False.
         n_elements (int): internal elements (a multiple of ``observed_points - 1``). Default 20.
         max_episode_steps (int): truncation. Default 200.
@@ -102,13 +108,15 @@ class SoftArmEnv(gym.Env):
 
     dt = 2e-4
     substeps = 100  # control period 20 ms
+    damping = 2.0  # [1/s]
+    filter_order = 4
 
     def __init__(
         self,
         observed_points: int = 5,
         task: str | None = None,
         target=None,
-        max_torque: float = 2.0,
+        max_torque: float = 10.0,
         gravity: bool = False,
         n_elements: int = 20,
         max_episode_steps: int = 200,
@@ -155,7 +163,11 @@ class SoftArmEnv(gym.Env):
         )
         sim.append(rod)
         sim.constrain(rod).using(ea.OneEndFixedBC, constrained_position_idx=(0,), constrained_director_idx=(0,))
-        sim.dampen(rod).using(ea.AnalyticalLinearDamper, uniform_damping_constant=2.0, time_step=self.dt)
+        sim.dampen(rod).using(ea.AnalyticalLinearDamper, uniform_damping_constant=self.damping, time_step=self.dt)
+        if self.filter_order:
+            # low-pass filter on velocities: removes the grid-scale shear/twist modes that abrupt
+            # torque switching excites (Elastica's recommended remedy), leaves bending intact
+            sim.dampen(rod).using(ea.LaplaceDissipationFilter, filter_order=self.filter_order)
         env = self
 
         class SplineTorques(ea.NoForces):
@@ -278,7 +290,7 @@ class SoftArmEnv(gym.Env):
         pass
 
 
-def settle_tip(env: SoftArmEnv, action, steps: int = 100) -> np.ndarray:
+def settle_tip(env: SoftArmEnv, action, steps: int = 200) -> np.ndarray:
     """Tip position after holding ``action`` from rest for ``steps`` control steps."""
     env.reset()
     for _ in range(steps):
@@ -295,3 +307,51 @@ def sample_reachable_target(rng: np.random.Generator) -> np.ndarray:
     if _TARGET_ENV is None:
         _TARGET_ENV = SoftArmEnv()
     return settle_tip(_TARGET_ENV, rng.uniform(-1, 1, 12))
+
+
+class RampController:
+    """Scripted reaching without any learned model or explored data: the actuation ramps from its
+    current value toward a constant action ``a*`` whose settled tip is the target,
+    ``a <- a + rate * (a* - a)`` (a first-order command filter, as a valve or motor driver would).
+    """
+
+    def __init__(self, goal_action, rate: float = 0.08):
+        self.goal = np.asarray(goal_action, dtype=np.float64)
+        self.rate = rate
+        self.action = np.zeros(12)
+
+    def __call__(self) -> np.ndarray:
+        self.action = self.action + self.rate * (self.goal - self.action)
+        return self.action.astype(np.float32)
+
+
+def heldout_transitions(n_targets: int, seed: int, observed_points: int = 5, max_steps: int = 150,
+                        tolerance: float = 0.005, progress: bool = False) -> dict:
+    """Rollouts of :class:`RampController` toward ``n_targets`` reachable targets (settled tips of
+    uniform random constant actions), each trimmed once the tip is within ``tolerance`` (5 mm).
+
+    Returns numpy arrays ``observation``, ``action`` (in [-1, 1]^12), ``next_observation``.
+    """
+    rng = np.random.default_rng(seed)
+    env = SoftArmEnv(observed_points=observed_points, max_episode_steps=max_steps)
+    obs_l, act_l, nxt_l = [], [], []
+    it = range(n_targets)
+    if progress:
+        from tqdm.auto import tqdm
+
+        it = tqdm(it, desc="held-out arm rollouts", unit="target")
+    for _ in it:
+        goal = rng.uniform(-1, 1, 12)
+        target = settle_tip(env, goal)
+        obs, info = env.reset(options={"target": target})
+        ctrl = RampController(goal, rate=rng.uniform(0.04, 0.2))
+        for _ in range(max_steps):
+            a = ctrl()
+            nxt, _, term, _, info = env.step(a)
+            if term:
+                break
+            obs_l.append(obs), act_l.append(a), nxt_l.append(nxt)
+            obs = nxt
+            if info["distance"] < tolerance:
+                break
+    return {"observation": np.array(obs_l), "action": np.array(act_l), "next_observation": np.array(nxt_l)}
