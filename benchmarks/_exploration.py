@@ -1,0 +1,87 @@
+"""Shared driver of the exploration benchmarks: methods x seeds at an equal transition budget,
+then held-out normalized MSE, coverage and zero-shot task returns. Resumable: rerunning skips
+finished runs and evaluations."""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchrl_softae.cli import PRESETS
+from torchrl_softae.config import make_config
+from torchrl_softae.evaluate import evaluate_run
+from torchrl_softae.explore import explore
+from torchrl_softae.plotting import plot_comparison
+
+METHODS = ["random", "mean-ae", "pets-ae", "softae"]
+RESULTS = Path(__file__).parent / "results"
+
+
+def parse(doc: str, env: str, episodes: int, eval_episodes: int) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--env", default=env)
+    p.add_argument("--episodes", type=int, default=episodes)
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--eval-episodes", type=int, default=eval_episodes)
+    p.add_argument("--methods", nargs="+", default=METHODS)
+    p.add_argument("--root", default=None, help="runs folder (default benchmarks/results/runs/exploration_ENV)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    return p.parse_args()
+
+
+def run(args, tasks: list[str], overrides: list[str], metric_keys: dict[str, str], note: str = "") -> str:
+    """Explore + evaluate every (method, seed); print and save a markdown table; return it."""
+    torch.set_num_threads(args.threads)
+    root = Path(args.root or RESULTS / "runs" / f"exploration_{args.env}")
+    rows: dict[str, list] = {}
+    for method in args.methods:
+        for seed in args.seeds:
+            cfg = make_config(args.env, method, PRESETS["quick"] + overrides + args.overrides,
+                              episodes=args.episodes, seed=seed, wandb="disabled")
+            run_dir = root / f"{method}-s{seed}"
+            history = explore(cfg, run_dir, progress=True)
+            row = {"seed": seed, "transitions": history[-1]["transitions"],
+                   "heldout_nmse": history[-1]["heldout_nmse"], "coverage": history[-1]["coverage"]}
+            for task in tasks:
+                f = run_dir / "eval" / f"{task}.json"
+                res = json.loads(f.read_text()) if f.exists() else None
+                if res is None or res.get("episodes") != args.eval_episodes:
+                    res = evaluate_run(run_dir, tasks=[task], episodes=args.eval_episodes, seed=777)["tasks"][task]
+                row[f"{task}/return"] = float(np.mean(res["returns"]))
+                for key in metric_keys:
+                    if res["metrics"] and key in res["metrics"][0]:
+                        row[f"{task}/{key}"] = float(np.mean([m[key] for m in res["metrics"]]))
+            rows.setdefault(method, []).append(row)
+            print(method, seed, row, flush=True)
+
+    def ms(vals, fmt):
+        return f"{np.mean(vals):{fmt}} ± {np.std(vals):{fmt}}"
+
+    budget = rows[args.methods[0]][0]["transitions"]
+    cols = ["heldout_nmse", "coverage"] + [f"{t}/return" for t in tasks] + [
+        f"{t}/{k}" for t in tasks for k in metric_keys if f"{t}/{k}" in rows[args.methods[0]][0]]
+    names = {"heldout_nmse": "held-out normalized MSE", "coverage": "coverage"}
+    names.update({f"{t}/return": f"{t} return" for t in tasks})
+    names.update({f"{t}/{k}": f"{t} {label}" for t in tasks for k, label in metric_keys.items()})
+    lines = [f"{args.env}: {budget} transitions per run ({args.episodes} episodes), seeds {args.seeds}, "
+             f"`quick` preset{note}, zero-shot tasks over {args.eval_episodes} episodes (mean propagation)", "",
+             "| method | " + " | ".join(names[c] for c in cols) + " |", "|---" * (len(cols) + 1) + "|"]
+    for m in args.methods:
+        cells = [ms([r[c] for r in rows[m]], ".4f" if c == "heldout_nmse" else ".3g") for c in cols]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    table = "\n".join(lines)
+    print("\n" + table)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"exploration_{args.env}.json").write_text(json.dumps(rows, indent=1))
+    (RESULTS / f"exploration_{args.env}.md").write_text(table + "\n")
+    plots = RESULTS / "plots"
+    plots.mkdir(exist_ok=True)
+    for f in plot_comparison(root):
+        shutil.copy(f, plots / f"{args.env}_{f.name}")
+        print(plots / f"{args.env}_{f.name}")
+    return table
