@@ -18,7 +18,8 @@ import torch
 
 import torchrl_softae  # noqa: F401  (registers the ids)
 
-ENVS = [("Pendulum-v1", {}), ("SoftArm-v0", {}), ("SoftArm136-v0", {})]
+ENVS = [("Pendulum-v1", {}), ("SoftArm-v0", {}), ("SoftArm136-v0", {}), ("SoftFish-v0", {}),
+        ("SoftFishTarget-v0", {}), ("MSKLeg-v0", {})]
 
 
 def steps_per_second(env_id: str, kwargs: dict, steps: int) -> float:

@@ -1,7 +1,8 @@
 """torchrl_softae: active exploration of soft-robot dynamics (SoftAE) as TorchRL components.
 
 Importing the package registers its gymnasium ids (cheap: simulators load on first ``make``):
-``SoftArm-v0`` (58D), ``SoftArm136-v0`` (136D).
+``SoftArm-v0`` (58D), ``SoftArm136-v0`` (136D), ``SoftFish-v0`` (15D), ``SoftFishTarget-v0`` (18D),
+``MSKLeg-v0`` (10D).
 """
 __version__ = "0.1.0"
 
@@ -12,6 +13,9 @@ def _register_gym_ids() -> None:
     ids = {
         "SoftArm-v0": ("torchrl_softae.envs.soft_arm:SoftArmEnv", {"observed_points": 5}, 200),
         "SoftArm136-v0": ("torchrl_softae.envs.soft_arm:SoftArmEnv", {"observed_points": 11}, 200),
+        "SoftFish-v0": ("torchrl_softae.envs.fish:SoftFishEnv", {"with_target": False}, 200),
+        "SoftFishTarget-v0": ("torchrl_softae.envs.fish:SoftFishEnv", {"with_target": True}, 200),
+        "MSKLeg-v0": ("torchrl_softae.envs.msk_leg:MSKLegEnv", {}, 500),
     }
     for env_id, (entry_point, kwargs, steps) in ids.items():
         if env_id not in gym.registry:

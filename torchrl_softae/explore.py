@@ -106,12 +106,12 @@ def normalized_mse(model: EnsembleWorldModel, heldout: TensorDictBase) -> float:
     return float(((mu - nxt) / std).square().mean())
 
 
-def coverage(entry: EnvEntry, observations: torch.Tensor, bounds: torch.Tensor, bins: int = 20) -> float:
+def coverage(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: int = 20) -> float:
     """Fraction of cells of a ``bins x bins`` grid over the env's projection that the data visits."""
-    obs = observations[torch.isfinite(observations).all(-1)]
-    if obs.shape[0] == 0:
+    p = entry.project(data)
+    p = p[torch.isfinite(p).all(-1)]
+    if p.shape[0] == 0:
         return 0.0
-    p = entry.projection(obs)
     lo, hi = bounds[0], bounds[1]
     idx = ((p - lo) / (hi - lo) * bins).floor().clamp(0, bins - 1).long()
     cells = torch.unique(idx[:, 0] * bins + idx[:, 1])
@@ -230,7 +230,7 @@ class Explorer:
         return history
 
     def _projection_bounds(self, heldout: TensorDictBase) -> torch.Tensor:
-        p = self.entry.projection(heldout["observation"])
+        p = self.entry.project(heldout)
         lo, hi = p.min(0).values, p.max(0).values
         pad = 0.05 * (hi - lo).clamp_min(1e-6)
         return torch.stack([lo - pad, hi + pad])
@@ -262,7 +262,8 @@ class Explorer:
         if step_bar is not None:
             step_bar.close()
         data = data.reshape(-1)
-        rb.extend(data.select("observation", "action", ("next", "observation"), ("next", "reward"),
+        keys = {"observation", *self.entry.projection_keys}
+        rb.extend(data.select(*keys, "action", *(("next", k) for k in keys), ("next", "reward"),
                               ("next", "done"), ("next", "env_fault"), strict=False).cpu())
         t_collect = time.perf_counter() - t0
 
@@ -270,7 +271,7 @@ class Explorer:
         report = trainer.fit(rb, generator=torch.Generator().manual_seed(s))
         t_train = time.perf_counter() - t1
 
-        obs_all = rb.storage[: len(rb)]["observation"]
+        stored = rb.storage[: len(rb)]
         row = {
             "episode": n,
             "transitions": len(rb),
@@ -282,7 +283,7 @@ class Explorer:
             "val_mse": report.final_val_mse,
             "grad_steps": report.grad_steps,
             "heldout_nmse": normalized_mse(model, heldout),
-            "coverage": coverage(self.entry, obs_all, bounds),
+            "coverage": coverage(self.entry, stored, bounds),
             "episode_env_reward": float(data["next", "reward"].sum()),
         }
         if cfg.eval_every and ((n + 1) % cfg.eval_every == 0 or n + 1 == cfg.episodes):

@@ -22,17 +22,16 @@ def _plt():
     return plt
 
 
-def _observations(run: RunDir) -> torch.Tensor:
+def _transitions(run: RunDir):
     state = run.load()
     rb = run.load_replay_buffer(state)
-    return rb.storage[: len(rb)]["observation"]
+    return rb.storage[: len(rb)]
 
 
 def plot_coverage(run: RunDir, entry, ax=None, bins: int = 40):
     plt = _plt()
-    obs = _observations(run)
-    obs = obs[torch.isfinite(obs).all(-1)]
-    p = entry.projection(obs).numpy()
+    p = entry.project(_transitions(run))
+    p = p[torch.isfinite(p).all(-1)].numpy()
     own = ax is None
     if own:
         fig, ax = plt.subplots(figsize=(5, 4))

@@ -21,7 +21,9 @@ class EnvEntry:
         env_id: the name used on the command line (``softae explore --env ID``).
         make: ``() -> EnvBase``: a TorchRL env with an ``"observation"`` entry and a bounded action.
         tasks: the downstream tasks, by name.
-        projection: ``(N, d_s) -> (N, 2)`` coverage projection for heatmaps, with axis labels.
+        projection: ``(N, d) -> (N, 2)`` coverage projection for heatmaps, with axis labels; it
+            receives the entries ``projection_keys`` of the transitions (default the observation;
+            e.g. the fish's world position, which the env reports through ``info``).
         heldout: ``(n, seed) -> transitions`` held-out set (``observation``, ``action``,
             ``("next", "observation")``) from a data source that does not use explored data.
         defaults: nested overrides of :class:`~torchrl_softae.config.ExploreConfig` (paper values per env).
@@ -35,6 +37,11 @@ class EnvEntry:
     heldout: Callable[[int, int], TensorDictBase]
     defaults: dict = field(default_factory=dict)
     description: str = ""
+    projection_keys: tuple = ("observation",)
+
+    def project(self, data) -> torch.Tensor:
+        """``data`` (a tensordict of transitions) -> ``(N, 2)`` coverage coordinates."""
+        return self.projection(*(data.get(k) for k in self.projection_keys))
 
 
 _ENTRIES: dict[str, EnvEntry] = {}
@@ -44,6 +51,9 @@ _LAZY: dict[str, str] = {  # env id -> module that registers it (imported on fir
     "cartpole-swingup": "torchrl_softae.envs.classic",
     "SoftArm-v0": "torchrl_softae.envs.arm_entry",
     "SoftArm136-v0": "torchrl_softae.envs.arm_entry",
+    "SoftFish-v0": "torchrl_softae.envs.mujoco_entries",
+    "SoftFishTarget-v0": "torchrl_softae.envs.mujoco_entries",
+    "MSKLeg-v0": "torchrl_softae.envs.mujoco_entries",
 }
 
 
