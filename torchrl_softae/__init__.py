@@ -2,7 +2,7 @@
 
 Importing the package registers its gymnasium ids (cheap: simulators load on first ``make``):
 ``SoftArm-v0`` (58D), ``SoftArm136-v0`` (136D), ``SoftFish-v0`` (15D), ``SoftFishTarget-v0`` (18D),
-``MSKLeg-v0`` (10D).
+``MSKLeg-v0`` (10D), ``SoPrA-v0`` (32D, the simulated twin).
 """
 __version__ = "0.1.0"
 
@@ -16,6 +16,7 @@ def _register_gym_ids() -> None:
         "SoftFish-v0": ("torchrl_softae.envs.fish:SoftFishEnv", {"with_target": False}, 200),
         "SoftFishTarget-v0": ("torchrl_softae.envs.fish:SoftFishEnv", {"with_target": True}, 200),
         "MSKLeg-v0": ("torchrl_softae.envs.msk_leg:MSKLegEnv", {}, 500),
+        "SoPrA-v0": ("torchrl_softae.envs.sopra.env:SoPrAGymEnv", {}, 200),
     }
     for env_id, (entry_point, kwargs, steps) in ids.items():
         if env_id not in gym.registry:

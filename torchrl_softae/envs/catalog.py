@@ -54,6 +54,7 @@ _LAZY: dict[str, str] = {  # env id -> module that registers it (imported on fir
     "SoftFish-v0": "torchrl_softae.envs.mujoco_entries",
     "SoftFishTarget-v0": "torchrl_softae.envs.mujoco_entries",
     "MSKLeg-v0": "torchrl_softae.envs.mujoco_entries",
+    "SoPrA-v0": "torchrl_softae.envs.sopra.entry",
 }
 
 

@@ -148,53 +148,19 @@ class SoftArmEnv(gym.Env):
 
     # ------------------------------------------------------------------ simulator
     def _build(self) -> None:
-        import elastica as ea
-        from elastica.timestepper.symplectic_steppers import PositionVerlet
+        from torchrl_softae.envs.cosserat import CosseratRodSim, RodParameters
 
-        class ArmSimulator(ea.BaseSystemCollection, ea.Constraints, ea.Forcing, ea.Damping):
-            pass
-
-        E, nu, radius, length, density = 1e6, 0.5, 0.05, 1.0, 1000.0
-        self.length = length
-        sim = ArmSimulator()
-        rod = ea.CosseratRod.straight_rod(
-            self.n_elements, np.zeros(3), np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]),
-            length, radius, density, youngs_modulus=E, shear_modulus=E / (2 * (1 + nu)),
-        )
-        sim.append(rod)
-        sim.constrain(rod).using(ea.OneEndFixedBC, constrained_position_idx=(0,), constrained_director_idx=(0,))
-        sim.dampen(rod).using(ea.AnalyticalLinearDamper, uniform_damping_constant=self.damping, time_step=self.dt)
-        if self.filter_order:
-            # low-pass filter on velocities: removes the grid-scale shear/twist modes that abrupt
-            # torque switching excites (Elastica's recommended remedy), leaves bending intact
-            sim.dampen(rod).using(ea.LaplaceDissipationFilter, filter_order=self.filter_order)
-        env = self
-
-        class SplineTorques(ea.NoForces):
-            """Internal couples along d1/d2 with the current spline profile (equal and opposite on
-            neighbouring elements, so the arm bends without any net external torque)."""
-
-            def apply_torques(self, system, time=0.0):
-                local = env._couples  # (3, n_elements - 1), local frame of the element above each interface
-                Q = system.director_collection  # (3, 3, n): rows = d1, d2, d3 in lab coordinates
-                lab = np.einsum("jin,jn->in", Q[:, :, 1:], local)  # to the lab frame
-                system.external_torques[:, 1:] += local
-                system.external_torques[:, :-1] -= np.einsum("ijn,jn->in", Q[:, :, :-1], lab)
-
-        self._couples = np.zeros((3, self.n_elements - 1))
-        sim.add_forcing_to(rod).using(SplineTorques)
-        if self.gravity:
-            sim.add_forcing_to(rod).using(ea.GravityForces, acc_gravity=np.array([0.0, 0.0, -9.81]))
-        sim.finalize()
-        self._sim, self._rod, self._stepper, self._time = sim, rod, PositionVerlet(), 0.0
-        self._state_keys = ("position_collection", "velocity_collection", "director_collection",
-                            "omega_collection", "acceleration_collection", "alpha_collection")
-        self._initial_state = {k: getattr(rod, k).copy() for k in self._state_keys}
+        self.length = 1.0
+        self._rod_sim = CosseratRodSim(RodParameters(
+            length=self.length, radius=0.05, density=1000.0, youngs_modulus=1e6, poisson_ratio=0.5,
+            n_elements=self.n_elements, damping=self.damping, filter_order=self.filter_order,
+            gravity=self.gravity, dt=self.dt,
+        ))
+        self._rod = self._rod_sim.rod
+        self._couples = self._rod_sim.couples
 
     def _restore(self) -> None:
-        for k, v in self._initial_state.items():
-            getattr(self._rod, k)[...] = v
-        self._time = 0.0
+        self._rod_sim.restore()
 
     def _initial_target(self):
         if self._fixed_target is not None:
@@ -232,7 +198,6 @@ class SoftArmEnv(gym.Env):
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)
         self._restore()
-        self._couples[...] = 0.0
         self._steps = 0
         if self._fixed_target is None and self.task == "reach-random":
             self.target = sample_reachable_target(self.np_random)
@@ -255,11 +220,10 @@ class SoftArmEnv(gym.Env):
     def step(self, action):
         self.set_action(action)
         diverged = False
+        self._rod_sim.advance(self.substeps * self.dt)
         with np.errstate(all="ignore"):
-            for _ in range(self.substeps):
-                self._time = self._stepper.step(self._sim, self._time, self.dt)
             obs = self._observe()
-            speed = np.abs(self._rod.velocity_collection).max()
+        speed = self._rod_sim.max_speed()
         if not np.all(np.isfinite(obs)) or not speed < self.divergence_velocity:
             diverged = True
         self._steps += 1
