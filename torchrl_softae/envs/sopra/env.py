@@ -282,7 +282,6 @@ class SoPrAEnv(EnvBase):
         from torchrl_softae.envs.sopra.sim import SoPrASim
 
         twin = SoPrASim(self.twin.p if self.twin is not None else None, seed=int(self._rng.integers(1 << 30)))
-        twin.mocap_dropout = 0.0
         p = self._rng.uniform(0, self.limits.p_max, N_CHAMBERS) * (self._rng.random(N_CHAMBERS) < 0.5)
         twin.send_pressures(p)
         twin.sleep_until(2.0)

@@ -7,7 +7,7 @@ MPa (DragonSkin 10 range), 16 elements, damping 3 /s. Each segment has three cha
 degrees, 12 mm off the axis with a 6 mm bore; a chamber at pressure p adds the bending moment
 ``p * pi * 6mm^2 * 12mm`` over its segment (about 60 degrees of segment bending at 1200 mbar).
 Valves: first-order lag (50 ms) after a 20 ms transport delay. Motion capture: 100 Hz, 5 ms
-latency, 0.2 mm / 0.2 degree noise, each body lost on 0.5 % of frames. Time is simulated:
+latency, 0.2 mm / 0.2 degree noise, each body lost on 0.05 % of frames. Time is simulated:
 ``sleep_until`` advances the physics, so the twin runs faster than real time.
 """
 from __future__ import annotations
@@ -40,7 +40,7 @@ class SoPrATwinParameters:
     mocap_latency: float = 0.005
     mocap_position_noise: float = 2e-4
     mocap_angle_noise: float = math.radians(0.2)
-    mocap_dropout: float = 0.005
+    mocap_dropout: float = 0.0005
 
 
 class SoPrASim:
