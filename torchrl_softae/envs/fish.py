@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import math
 
-import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+
+from torchrl_softae.envs.mujoco_base import MujocoRobotEnv, check_action
 
 __all__ = ["SoftFishEnv", "FISH_XML", "fish_layout"]
 
@@ -86,7 +87,7 @@ def fish_layout(with_target: bool) -> dict[str, slice]:
     return lay
 
 
-class SoftFishEnv(gym.Env):
+class SoftFishEnv(MujocoRobotEnv):
     """Planar articulated fish in MuJoCo's fluid.
 
     Args:
@@ -124,7 +125,6 @@ class SoftFishEnv(gym.Env):
         self._qpos_joints = [self.model.joint(f"j{i}").qposadr[0] for i in range(1, 6)]
         self._qvel_joints = [self.model.joint(f"j{i}").dofadr[0] for i in range(1, 6)]
         self.target = np.array([1.0, 0.0, 0.0])
-        self._renderer = None
         self._steps = 0
 
     @property
@@ -162,21 +162,11 @@ class SoftFishEnv(gym.Env):
         return self._obs(), self._info()
 
     def step(self, action):
-        a = np.asarray(action, dtype=np.float64).reshape(4)
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"SoftFishEnv: action contains NaN/inf: {a}")
-        if np.any(np.abs(a) > 1 + 1e-6):
-            raise ValueError(f"SoftFishEnv: action {a} is outside the action space [-1, 1]^4")
-        self.data.ctrl[:] = a
-        diverged = False
+        self.data.ctrl[:] = check_action("SoftFishEnv", action, 4)
         p0 = self.position
-        warn0 = self._instability_warnings()
-        for _ in range(self.frame_skip):
-            self._mj.mj_step(self.model, self.data)
+        unstable = self._simulate(self.frame_skip)
         obs = self._obs()
-        warn = self._instability_warnings() - warn0
-        if not np.all(np.isfinite(obs)) or warn > 0 or np.abs(self.data.qvel).max() > 1e3:
-            diverged = True
+        diverged = bool(unstable or not np.all(np.isfinite(obs)) or np.abs(self.data.qvel).max() > 1e3)
         self._steps += 1
         reward = 0.0
         if not diverged and self.task is not None:
@@ -185,21 +175,5 @@ class SoftFishEnv(gym.Env):
             reward = {"forward": vx, "backward": -vx, "to-target": -dist, "from-target": dist}[self.task]
         return obs, float(reward), diverged, self._steps >= self.max_episode_steps, self._info(diverged)
 
-    def _instability_warnings(self) -> int:
-        """MuJoCo's count of NaN/inf/huge qpos, qvel, qacc (it resets the state when it sees one)."""
-        w = self._mj.mjtWarning
-        return sum(int(self.data.warning[k].number) for k in (w.mjWARN_BADQPOS, w.mjWARN_BADQVEL, w.mjWARN_BADQACC))
-
     def render(self):
-        if self._renderer is None:
-            self._renderer = self._mj.Renderer(self.model, 240, 320)
-        cam = self._mj.MjvCamera()
-        cam.lookat[:] = [*self.position, 0.0]
-        cam.distance, cam.elevation, cam.azimuth = 1.2, -89.0, 90.0
-        self._renderer.update_scene(self.data, camera=cam)
-        return self._renderer.render().copy()
-
-    def close(self):
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        return self._render_from([*self.position, 0.0], 1.2, -89.0, 90.0)

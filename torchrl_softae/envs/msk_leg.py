@@ -19,9 +19,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+
+from torchrl_softae.envs.mujoco_base import MujocoRobotEnv, check_action
 
 __all__ = ["HaselMuscleModel", "MSKLegEnv", "LEG_XML", "leg_layout", "MUSCLES"]
 
@@ -122,7 +123,7 @@ def leg_layout() -> dict[str, int | slice]:
             "joint_velocities": slice(8, 10)}
 
 
-class MSKLegEnv(gym.Env):
+class MSKLegEnv(MujocoRobotEnv):
     """Hopping leg on a boom with HASEL muscles (``MSKLeg-v0``).
 
     Args:
@@ -158,7 +159,6 @@ class MSKLegEnv(gym.Env):
         mujoco.mj_forward(self.model, self.data)
         self._rest_length = self.data.ten_length[self._tendons].copy()
         self._voltage = np.zeros(4)
-        self._renderer = None
         self._steps = 0
 
     def _obs(self) -> np.ndarray:
@@ -189,23 +189,19 @@ class MSKLegEnv(gym.Env):
         return self._obs(), self._info()
 
     def step(self, action):
-        a = np.asarray(action, dtype=np.float64).reshape(5)
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"MSKLegEnv: action contains NaN/inf: {a}")
-        if np.any(np.abs(a) > 1 + 1e-6):
-            raise ValueError(f"MSKLegEnv: action {a} is outside the action space [-1, 1]^5")
+        a = check_action("MSKLegEnv", action, 5)
         self.data.ctrl[0] = self.roll_range * a[0]
         v_cmd = (a[1:] + 1.0) / 2.0 * self.muscles.v_max
         dt = self.model.opt.timestep
         yaw0 = float(self.data.qpos[self._qpos[0]])
-        warn0 = self._instability_warnings()
-        for _ in range(self.frame_skip):
+
+        def muscles():  # RC charging and force of every muscle, each physics substep
             self._voltage = self.muscles.voltage_step(self._voltage, v_cmd, dt)
             self.data.ctrl[1:5] = -self.muscle_forces  # tendon actuators pull (negative = shortening)
-            self._mj.mj_step(self.model, self.data)
+
+        unstable = self._simulate(self.frame_skip, muscles)
         obs = self._obs()
-        warn = self._instability_warnings() - warn0
-        diverged = bool(not np.all(np.isfinite(obs)) or warn > 0 or np.abs(obs[5:]).max() > 500)
+        diverged = bool(unstable or not np.all(np.isfinite(obs)) or np.abs(obs[5:]).max() > 500)
         self._steps += 1
         reward = 0.0
         if self.task is not None and not diverged:
@@ -213,21 +209,5 @@ class MSKLegEnv(gym.Env):
             reward = yaw_rate if self.task == "ccw" else -yaw_rate
         return obs, reward, diverged, self._steps >= self.max_episode_steps, self._info(diverged)
 
-    def _instability_warnings(self) -> int:
-        """MuJoCo's count of NaN/inf/huge qpos, qvel, qacc (it resets the state when it sees one)."""
-        w = self._mj.mjtWarning
-        return sum(int(self.data.warning[k].number) for k in (w.mjWARN_BADQPOS, w.mjWARN_BADQVEL, w.mjWARN_BADQACC))
-
     def render(self):
-        if self._renderer is None:
-            self._renderer = self._mj.Renderer(self.model, 240, 320)
-        cam = self._mj.MjvCamera()
-        cam.lookat[:] = self.data.body("hip").xpos
-        cam.distance, cam.elevation, cam.azimuth = 0.9, -15.0, 0.0
-        self._renderer.update_scene(self.data, camera=cam)
-        return self._renderer.render().copy()
-
-    def close(self):
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        return self._render_from(self.data.body("hip").xpos, 0.9, -15.0, 0.0)

@@ -22,6 +22,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from torchrl_softae.envs.rotations import rotation_to_quaternion
+
 __all__ = ["SoftArmEnv", "reach_reward", "ARM_TARGETS", "arm_layout"]
 
 
@@ -61,19 +63,6 @@ ARM_TARGET_ACTIONS = {
     "reach-close": np.r_[np.zeros(6), 0.3 * np.ones(6)],
     "reach-far": np.r_[-0.6 * np.ones(6), 0.9 * np.ones(6)],
 }
-
-
-def _rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices -> (N, 4) quaternions (w, x, y, z) with w >= 0."""
-    w = np.sqrt(np.maximum(0.0, 1.0 + R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2])) / 2
-    x = np.sqrt(np.maximum(0.0, 1.0 + R[:, 0, 0] - R[:, 1, 1] - R[:, 2, 2])) / 2
-    y = np.sqrt(np.maximum(0.0, 1.0 - R[:, 0, 0] + R[:, 1, 1] - R[:, 2, 2])) / 2
-    z = np.sqrt(np.maximum(0.0, 1.0 - R[:, 0, 0] - R[:, 1, 1] + R[:, 2, 2])) / 2
-    x = np.copysign(x, R[:, 2, 1] - R[:, 1, 2])
-    y = np.copysign(y, R[:, 0, 2] - R[:, 2, 0])
-    z = np.copysign(z, R[:, 1, 0] - R[:, 0, 1])
-    q = np.stack([w, x, y, z], -1)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 def _spline_basis(n_interfaces: int, n_control: int = 6) -> np.ndarray:
@@ -179,7 +168,7 @@ class SoftArmEnv(gym.Env):
         vel = rod.velocity_collection[:, nodes].T.reshape(-1)
         mid = np.arange(P - 1) * stride + stride // 2  # middle element of each segment
         R = np.transpose(rod.director_collection[:, :, mid], (2, 1, 0))  # local -> lab (Q^T)
-        quat = _rotation_to_quaternion(R).reshape(-1)
+        quat = rotation_to_quaternion(R).reshape(-1)
         # segment angular velocity: mean of its elements' omega (local frame), rotated to the lab frame
         omega_lab = np.einsum("jin,jn->ni", rod.director_collection, rod.omega_collection)
         omega = omega_lab.reshape(P - 1, stride, 3).mean(1).reshape(-1)
@@ -208,11 +197,9 @@ class SoftArmEnv(gym.Env):
         return self._observe(), self._info()
 
     def set_action(self, action) -> None:
-        a = np.asarray(action, dtype=np.float64).reshape(12)
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"SoftArmEnv: action contains NaN/inf: {a}")
-        if np.any(np.abs(a) > 1.0 + 1e-6):
-            raise ValueError(f"SoftArmEnv: action {a} is outside the action space [-1, 1]^12")
+        from torchrl_softae.envs.checks import check_action
+
+        a = check_action("SoftArmEnv", action, 12)
         torque = self.max_torque * a
         self._couples[0] = self._basis @ torque[:6]  # normal (d1)
         self._couples[1] = self._basis @ torque[6:]  # binormal (d2)

@@ -19,6 +19,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from torchrl_softae.envs.rotations import rotation_to_quaternion
+
 __all__ = [
     "Pose",
     "MotionCapture",
@@ -66,19 +68,6 @@ class ValveArray(Protocol):
     def vent(self) -> None: ...
 
     def close(self) -> None: ...
-
-
-def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """3x3 rotation matrix -> unit quaternion (w, x, y, z) with w >= 0 (NaN in, NaN out)."""
-    R = np.asarray(R, dtype=np.float64)
-    if not np.all(np.isfinite(R)):
-        return np.full(4, np.nan)
-    w = np.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
-    x = np.copysign(np.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2])) / 2, R[2, 1] - R[1, 2])
-    y = np.copysign(np.sqrt(max(0.0, 1.0 - R[0, 0] + R[1, 1] - R[2, 2])) / 2, R[0, 2] - R[2, 0])
-    z = np.copysign(np.sqrt(max(0.0, 1.0 - R[0, 0] - R[1, 1] + R[2, 2])) / 2, R[1, 0] - R[0, 1])
-    q = np.array([w, x, y, z])
-    return q / np.linalg.norm(q)
 
 
 class RecordingValveArray:

@@ -18,6 +18,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from torchrl_softae.envs.rotations import quat_conj as _qconj, quat_mul as _qmul, quat_rotate as _qrot
 from torchrl_softae.envs.sopra.backends import N_CHAMBERS, Pose
 from torchrl_softae.envs.sopra.safety import SafetyFault, SafetyLayer, SafetyLimits
 
@@ -52,21 +53,6 @@ class MonotonicClock:
         dt = t - time.monotonic()
         if dt > 0:
             time.sleep(dt)
-
-
-def _qconj(q):
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
-
-
-def _qmul(a, b):
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
-
-
-def _qrot(q, v):
-    return _qmul(_qmul(q, np.r_[0.0, v]), _qconj(q))[1:]
 
 
 @dataclass
@@ -247,11 +233,9 @@ class SoPrAEnv(EnvBase):
         return self._td(obs)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action").detach().cpu().numpy().astype(np.float64).reshape(-1)
-        if action.shape != (N_CHAMBERS,) or not np.all(np.isfinite(action)):
-            raise ValueError(f"SoPrAEnv: action {action} must be 6 finite values")
-        if np.any(np.abs(action) > 1 + 1e-6):
-            raise ValueError(f"SoPrAEnv: action {action} is outside the action space [-1, 1]^6")
+        from torchrl_softae.envs.checks import check_action
+
+        action = check_action("SoPrAEnv", tensordict.get("action").detach().cpu().numpy(), N_CHAMBERS)
         wall = time.perf_counter()
         overrun = self._last_wall is not None and wall - self._last_wall > self.control_period
         self.timing["periods"].append(wall - self._last_wall if self._last_wall is not None else float("nan"))

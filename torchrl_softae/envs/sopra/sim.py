@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from torchrl_softae.envs.sopra.backends import N_CHAMBERS, Pose, rotation_to_quaternion
+from torchrl_softae.envs.rotations import quat_mul, rotation_to_quaternion
+from torchrl_softae.envs.sopra.backends import N_CHAMBERS, Pose
 
 __all__ = ["SoPrATwinParameters", "SoPrASim"]
 
@@ -134,7 +135,8 @@ class SoPrASim:
             axis = self.rng.normal(size=3)
             half = 0.5 * self.rng.normal(0, p.mocap_angle_noise)
             dq = np.r_[math.cos(half), math.sin(half) * axis / np.linalg.norm(axis)]
-            poses[name] = Pose(pos, _qmul(pose.quaternion, dq), self.time)
+            q = quat_mul(pose.quaternion, dq)
+            poses[name] = Pose(pos, q if q[0] >= 0 else -q, self.time)
         self._frames.append((self.time + p.mocap_latency, self._frame_number, poses))
 
     def _publish(self) -> None:
@@ -165,11 +167,3 @@ class SoPrASim:
 
     def close(self) -> None:
         pass
-
-
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    q = np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                  w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
-    return q if q[0] >= 0 else -q
