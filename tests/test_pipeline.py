@@ -177,3 +177,12 @@ def test_softae_covers_more_than_random(tmp_path):
         cfg = make_config("Pendulum-hanging", m, settings, episodes=3, episode_length=100, wandb="disabled")
         cov[m] = explore(cfg, tmp_path / m, progress=False)[-1]["coverage"]
     assert cov["softae"] > 2 * cov["random"], cov
+
+
+def test_wandb_offline_logging_needs_no_network(tmp_path, monkeypatch):
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    argv = _explore_argv(tmp_path, "random", episodes=1)
+    argv[argv.index("--wandb") + 1] = "offline"
+    assert main(argv) == 0
+    runs = list((tmp_path / "wandb").glob("offline-run-*"))
+    assert len(runs) == 1 and any(runs[0].glob("*.wandb"))
