@@ -9,6 +9,8 @@
 """
 from __future__ import annotations
 
+import time
+
 import torch
 from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded
@@ -16,7 +18,7 @@ from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl.envs.utils import RandomPolicy
 
 from torchrl_softae.config import ExploreConfig, ModelConfig, PlannerConfig
-from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
+from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, RealActionPolicy, UncertaintyReward
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
 from torchrl_softae.tasks.base import Task, TaskReward
 
@@ -30,30 +32,19 @@ def build_world_model(cfg: ModelConfig, observation_dim: int, action_dim: int) -
     )
 
 
-class PlannerPolicy(TensorDictModuleBase):
-    """An MPC planner as a collector policy: plans, then writes only the real action.
-
-    Also counts planning calls and time (``calls``, ``seconds``) and drives an optional tqdm bar.
-    """
+class PlannerPolicy(RealActionPolicy):
+    """An MPC planner as a collector policy: plans, then writes only the real action (first d_a
+    dims; the rest is hallucinated control). Counts planning calls and time (``calls``,
+    ``seconds``) and drives an optional tqdm bar."""
 
     def __init__(self, planner: ICEMPlanner, action_dim: int, progress=None):
-        super().__init__()
-        self.planner = planner
-        self.action_dim = action_dim
-        self.in_keys = list(planner.in_keys)
-        self.out_keys = ["action"]
+        super().__init__(planner, action_dim)
         self.progress = progress
         self.calls, self.seconds = 0, 0.0
 
-    def reset(self) -> None:
-        self.planner.reset()
-
     def forward(self, tensordict):
-        import time
-
         t = time.perf_counter()
-        tensordict = self.planner(tensordict)
-        tensordict.set("action", tensordict.get("action")[..., : self.action_dim])
+        tensordict = super().forward(tensordict)
         self.seconds += time.perf_counter() - t
         self.calls += 1
         if self.progress is not None:
