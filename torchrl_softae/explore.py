@@ -80,7 +80,7 @@ def heldout_set(entry: EnvEntry, run: RunDir | None, size: int, seed: int = 1234
         td = torch.load(run.heldout_path, weights_only=False)
         if td.shape[0] == size:
             return td
-    cached = _cache_dir() / "heldout" / f"{entry.env_id}-{size}-{seed}.pt"
+    cached = _cache_dir() / "heldout" / f"{entry.env_id}-v{entry.version}-{size}-{seed}.pt"
     if cached.exists():
         td = torch.load(cached, weights_only=False)
     else:

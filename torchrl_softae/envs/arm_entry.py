@@ -58,6 +58,7 @@ def _entry(env_id: str, points: int) -> EnvEntry:
         projection_labels=("tip x [m]", "tip z [m]"),
         heldout=_heldout(points),
         defaults={"episode_length": 200, "planner": {"horizon": 10}},
+        version="2",
         description=f"PyElastica Cosserat-rod arm, {6 * points + 7 * (points - 1)}D state, 12 torques",
     )
 

@@ -38,6 +38,7 @@ class EnvEntry:
     defaults: dict = field(default_factory=dict)
     description: str = ""
     projection_keys: tuple = ("observation",)
+    version: str = "1"  # bump when the physics changes: keys the held-out cache
 
     def project(self, data) -> torch.Tensor:
         """``data`` (a tensordict of transitions) -> ``(N, 2)`` coverage coordinates."""

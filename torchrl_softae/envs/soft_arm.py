@@ -3,7 +3,8 @@ Cosserat Rod Simulation"; supplement Table S1 state layout, Table S6 reward).
 
 Physics (after Naughton et al. 2021, 3-D tracking case): a 1 m rod of radius 5 cm, density
 1000 kg/m^3, Young's modulus 1 MPa (Poisson 0.5), 20 elements, clamped at the origin and pointing
-up (+z), analytical linear damping, PositionVerlet with dt = 2e-4 s; optional gravity (-z).
+up (+z), analytical linear damping 5 /s plus a Laplace dissipation filter, PositionVerlet with
+dt = 2e-4 s; optional gravity (-z). The actuators build torque with a 50 ms first-order lag.
 Actuation: internal couples in the local normal (d1) and binormal (d2) directions whose profile
 along the arm is a cubic spline through 6 equidistant control points; action [-1, 1]^12 =
 (normal 0:6, binormal 6:12) scaled by ``max_torque`` [N m]. One control step = 100 substeps
@@ -97,8 +98,9 @@ class SoftArmEnv(gym.Env):
 
     dt = 2e-4
     substeps = 100  # control period 20 ms
-    damping = 2.0  # [1/s]
+    damping = 5.0  # [1/s]
     filter_order = 4
+    activation_tau = 0.05  # [s] torque build-up of the actuators
 
     def __init__(
         self,
@@ -143,10 +145,10 @@ class SoftArmEnv(gym.Env):
         self._rod_sim = CosseratRodSim(RodParameters(
             length=self.length, radius=0.05, density=1000.0, youngs_modulus=1e6, poisson_ratio=0.5,
             n_elements=self.n_elements, damping=self.damping, filter_order=self.filter_order,
-            gravity=self.gravity, dt=self.dt,
+            gravity=self.gravity, dt=self.dt, activation_tau=self.activation_tau,
         ))
         self._rod = self._rod_sim.rod
-        self._couples = self._rod_sim.couples
+        self._couples = self._rod_sim.target_couples
 
     def _restore(self) -> None:
         self._rod_sim.restore()

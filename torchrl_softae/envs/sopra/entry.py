@@ -54,5 +54,6 @@ register_env_entry(EnvEntry(
     projection_labels=("tip x [m]", "tip y [m]"),
     heldout=_heldout,
     defaults={"episode_length": 200, "planner": {"horizon": 5, "noise_beta": 1.0}},
+    version="2",
     description="SoPrA pneumatic arm, simulated twin (32D state, 6 pressure deltas)",
 ))

@@ -113,7 +113,7 @@ class SoPrASim:
     def _apply_pressures(self) -> None:
         m1 = self.pressure[:3] @ self._unit_couple  # segment 1 (base side), (2,)
         m2 = self.pressure[3:] @ self._unit_couple
-        self.rod.couples[:2] = np.where(self._seg_of_interface, m2[:, None], m1[:, None])
+        self.rod.target_couples[:2] = np.where(self._seg_of_interface, m2[:, None], m1[:, None])
 
     # ------------------------------------------------------------------ motion capture
     def _true_poses(self) -> dict[str, Pose]:
