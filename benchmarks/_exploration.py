@@ -45,8 +45,8 @@ def run(args, tasks: list[str], overrides: list[str], metric_keys: dict[str, str
                               episodes=args.episodes, seed=seed, wandb="disabled")
             run_dir = root / f"{method}-s{seed}"
             history = explore(cfg, run_dir, progress=True)
-            row = {"seed": seed, "transitions": history[-1]["transitions"],
-                   "heldout_nmse": history[-1]["heldout_nmse"], "coverage": history[-1]["coverage"]}
+            row = {"seed": seed, "transitions": history[-1]["transitions"], "coverage": history[-1]["coverage"],
+                   **{k: v for k, v in history[-1].items() if k.startswith("heldout_nmse")}}
             for task in tasks:
                 f = run_dir / "eval" / f"{task}.json"
                 res = json.loads(f.read_text()) if f.exists() else None
@@ -63,16 +63,18 @@ def run(args, tasks: list[str], overrides: list[str], metric_keys: dict[str, str
         return f"{np.mean(vals):{fmt}} ± {np.std(vals):{fmt}}"
 
     budget = rows[args.methods[0]][0]["transitions"]
-    cols = ["heldout_nmse", "coverage"] + [f"{t}/return" for t in tasks] + [
+    nmse_cols = sorted(k for k in rows[args.methods[0]][0] if k.startswith("heldout_nmse"))
+    cols = nmse_cols + ["coverage"] + [f"{t}/return" for t in tasks] + [
         f"{t}/{k}" for t in tasks for k in metric_keys if f"{t}/{k}" in rows[args.methods[0]][0]]
     names = {"heldout_nmse": "held-out normalized MSE", "coverage": "coverage"}
+    names.update({k: f"normalized MSE ({k.split('/', 1)[1]})" for k in nmse_cols if "/" in k})
     names.update({f"{t}/return": f"{t} return" for t in tasks})
     names.update({f"{t}/{k}": f"{t} {label}" for t in tasks for k, label in metric_keys.items()})
     lines = [f"{args.env}: {budget} transitions per run ({args.episodes} episodes), seeds {args.seeds}, "
              f"`quick` preset{note}, zero-shot tasks over {args.eval_episodes} episodes (mean propagation)", "",
              "| method | " + " | ".join(names[c] for c in cols) + " |", "|---" * (len(cols) + 1) + "|"]
     for m in args.methods:
-        cells = [ms([r[c] for r in rows[m]], ".4f" if c == "heldout_nmse" else ".3g") for c in cols]
+        cells = [ms([r[c] for r in rows[m]], ".4g" if c.startswith("heldout_nmse") else ".3g") for c in cols]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     table = "\n".join(lines)
     print("\n" + table)

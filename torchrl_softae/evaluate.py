@@ -93,7 +93,8 @@ def evaluate_run(
     out = {"env": cfg.env, "method": cfg.method, "seed": cfg.seed, "episodes_explored": state["episode"] + 1,
            "transitions": state["num_transitions"]}
     heldout = heldout_set(entry, run, cfg.heldout_size)
-    out["heldout_nmse"] = normalized_mse(model, heldout)
+    out["heldout_nmse"], groups = normalized_mse(model, heldout, entry.accuracy_groups)
+    out.update({f"heldout_nmse/{k}": v for k, v in groups.items()})
     run.write_json(run.eval_dir / "model_accuracy.json", {k: out[k] for k in out})
     out["tasks"] = {}
     for name in names:

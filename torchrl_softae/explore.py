@@ -97,13 +97,18 @@ def heldout_set(entry: EnvEntry, run: RunDir | None, size: int, seed: int = 1234
 
 
 @torch.no_grad()
-def normalized_mse(model: EnsembleWorldModel, heldout: TensorDictBase) -> float:
-    """Next-state MSE of the ensemble mean, each dimension divided by its std over the held-out set."""
+def normalized_mse(model: EnsembleWorldModel, heldout: TensorDictBase, groups: dict | None = None):
+    """Next-state MSE of the ensemble mean, each dimension divided by its std over the held-out set
+    (a constant dimension counts in its own units). With ``groups`` (name -> dims), returns
+    ``(overall, {name: nmse over those dims})``."""
     obs, act, nxt = heldout["observation"], heldout["action"], heldout["next", "observation"]
     mu, *_ = model.predict(obs, act)
     std = nxt.std(0)
     std = torch.where(std > 1e-8, std, torch.ones_like(std))
-    return float(((mu - nxt) / std).square().mean())
+    per_dim = ((mu - nxt) / std).square().mean(0)
+    if groups is None:
+        return float(per_dim.mean())
+    return float(per_dim.mean()), {k: float(per_dim[v].mean()) for k, v in groups.items()}
 
 
 def coverage(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: int = 20) -> float:
@@ -272,6 +277,7 @@ class Explorer:
         t_train = time.perf_counter() - t1
 
         stored = rb.storage[: len(rb)]
+        nmse, groups = normalized_mse(model, heldout, self.entry.accuracy_groups)
         row = {
             "episode": n,
             "transitions": len(rb),
@@ -282,9 +288,10 @@ class Explorer:
             "train_loss": report.train_loss[-1] if report.train_loss else float("nan"),
             "val_mse": report.final_val_mse,
             "grad_steps": report.grad_steps,
-            "heldout_nmse": normalized_mse(model, heldout),
+            "heldout_nmse": nmse,
             "coverage": coverage(self.entry, stored, bounds),
             "episode_env_reward": float(data["next", "reward"].sum()),
+            **{f"heldout_nmse/{k}": v for k, v in groups.items()},
         }
         if cfg.eval_every and ((n + 1) % cfg.eval_every == 0 or n + 1 == cfg.episodes):
             from torchrl_softae.evaluate import zero_shot

@@ -59,6 +59,8 @@ def _entry(env_id: str, points: int) -> EnvEntry:
         heldout=_heldout(points),
         defaults={"episode_length": 200, "planner": {"horizon": 10}},
         version="2",
+        accuracy_groups={"tip": list(range(3 * points - 3, 3 * points)),
+                         "positions": list(range(3 * points))},
         description=f"PyElastica Cosserat-rod arm, {6 * points + 7 * (points - 1)}D state, 12 torques",
     )
 

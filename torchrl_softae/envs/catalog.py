@@ -39,6 +39,7 @@ class EnvEntry:
     description: str = ""
     projection_keys: tuple = ("observation",)
     version: str = "1"  # bump when the physics changes: keys the held-out cache
+    accuracy_groups: dict = field(default_factory=dict)  # extra normalized-MSE reports, name -> dims
 
     def project(self, data) -> torch.Tensor:
         """``data`` (a tensordict of transitions) -> ``(N, 2)`` coverage coordinates."""
