@@ -165,7 +165,7 @@ def plot_comparison(folder: str | Path) -> list[Path]:
         written.append(out)
 
     entry = get_env_entry(by_method[methods[0]][0][1]["config"]["env"])
-    fig, axes = plt.subplots(1, len(methods), figsize=(3.6 * len(methods), 3.3), squeeze=False)
+    fig, axes = plt.subplots(1, len(methods), figsize=(3.6 * len(methods), 3.3), squeeze=False, sharex=True, sharey=True)
     for ax, m in zip(axes[0], methods):
         run, state = by_method[m][0]
         plot_coverage(run, entry, ax=ax)
