@@ -46,7 +46,7 @@ SHAPES = [  # (name, d_s, d_a, H)
 class LoopEnsembleWorldModel(EnsembleWorldModel):
     """The naive baseline: members evaluated one after the other in a Python loop."""
 
-    def network(self, x, with_logvar=True):
+    def network(self, x, with_logvar=True, bound_logvar=True):
         outs = []
         for l in range(self.ensemble_size):
             h = x if x.dim() == 2 else x[l]
@@ -57,7 +57,7 @@ class LoopEnsembleWorldModel(EnsembleWorldModel):
             outs.append(h)
         out = torch.stack(outs)
         mean, logvar = out.chunk(2, dim=-1)
-        return mean, logvar
+        return mean, (self._bound_logvar(logvar) if bound_logvar else logvar)
 
 
 def make_model(cls, d_s, d_a, seed=0):

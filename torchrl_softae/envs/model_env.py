@@ -122,7 +122,12 @@ class EnsembleModelEnv(ModelBasedEnvBase):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """One model step on plain tensors: returns ``(s', sigma)``, both ``(*B, d_s)``."""
         model = self.world_model
-        members, ale = model.predict_members(observation, action, with_aleatoric=self.aleatoric_noise)
+        if self.mode == "sample" and member_index is None:
+            member_index = torch.randint(model.ensemble_size, observation.shape[:-1], generator=self._generator)
+        members, ale = model.predict_members(
+            observation, action, with_aleatoric=self.aleatoric_noise,
+            member_index=member_index if self.mode == "sample" else None,
+        )
         mu = members.mean(0)
         sigma = ensemble_std(members, mu)
         if self.mode == "mean":
@@ -135,18 +140,20 @@ class EnsembleModelEnv(ModelBasedEnvBase):
                 raise ValueError(f"'eta' has shape {tuple(eta.shape)}, expected {tuple(mu.shape)}")
             nxt = torch.addcmul(mu, sigma, eta)
             noise_std = ale.square().mean(0).sqrt() if ale is not None else None
-        else:
-            L = model.ensemble_size
-            if member_index is None:
-                member_index = torch.randint(L, mu.shape[:-1], generator=self._generator)
+        else:  # trajectory sampling: ``ale`` is already the assigned member's
             idx = member_index.reshape(1, *mu.shape[:-1], 1).expand(1, *mu.shape)
             nxt = members.gather(0, idx).squeeze(0)
-            noise_std = ale.gather(0, idx).squeeze(0) if ale is not None else None
+            noise_std = ale
         if noise_std is not None:
             nxt = nxt + noise_std * self._randn(nxt.shape, nxt)
         return nxt, sigma
 
+    #: validate every action against the spec (a planner that clips its samples may switch it off)
+    check_actions: bool = True
+
     def _check_action(self, action: torch.Tensor) -> None:
+        if not self.check_actions:
+            return
         d_a = self.world_model.action_dim
         if action.shape[-1:] != (d_a,):
             raise ValueError(f"EnsembleModelEnv: 'action' has shape {tuple(action.shape)}, expected (..., {d_a})")

@@ -176,21 +176,24 @@ class ICEMPlanner(MPCPlannerBase):
         return mid, half
 
     # ------------------------------------------------------------------ evaluation
+    @contextlib.contextmanager
     def _precision_ctx(self):
-        model = self._world_model
-        if self.planning_dtype is None or not isinstance(model, EnsembleWorldModel):
-            return contextlib.nullcontext()
-
-        @contextlib.contextmanager
-        def ctx():
-            prev = model.planning_dtype
+        """Reduced precision in the ensemble while planning; the model env may skip re-validating
+        actions, since every sample is clipped to the action spec here."""
+        model, env = self._world_model, self._base_env
+        prev_dtype = getattr(model, "planning_dtype", None)
+        prev_check = getattr(env, "check_actions", None)
+        if self.planning_dtype is not None and isinstance(model, EnsembleWorldModel):
             model.planning_dtype = self.planning_dtype
-            try:
-                yield
-            finally:
-                model.planning_dtype = prev
-
-        return ctx()
+        if prev_check is not None and bool(torch.isfinite(self._low).all() and torch.isfinite(self._high).all()):
+            env.check_actions = False
+        try:
+            yield
+        finally:
+            if isinstance(model, EnsembleWorldModel):
+                model.planning_dtype = prev_dtype
+            if prev_check is not None:
+                env.check_actions = prev_check
 
     @torch.no_grad()
     def evaluate(self, observation_td: TensorDictBase, actions: torch.Tensor) -> torch.Tensor:
