@@ -186,3 +186,13 @@ def test_wandb_offline_logging_needs_no_network(tmp_path, monkeypatch):
     assert main(argv) == 0
     runs = list((tmp_path / "wandb").glob("offline-run-*"))
     assert len(runs) == 1 and any(runs[0].glob("*.wandb"))
+
+
+def test_evaluate_with_planner_overrides(tmp_path, capsys):
+    assert main(_explore_argv(tmp_path, "softae", episodes=1)) == 0
+    assert main(["evaluate", "--run-dir", str(tmp_path), "--task", "spin", "--episodes", "1", "--quiet",
+                 "--set", "planner.horizon=3"]) == 0
+    res = json.loads((tmp_path / "eval" / "spin@horizon=3.json").read_text())
+    assert res["planner"]["horizon"] == 3
+    assert main(["evaluate", "--run-dir", str(tmp_path), "--task", "spin", "--set", "train.lr=1"]) == 2
+    assert "only overrides planner settings" in capsys.readouterr().err

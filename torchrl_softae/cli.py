@@ -86,7 +86,7 @@ def cmd_evaluate(args) -> int:
 
     _threads(args.threads)
     res = evaluate_run(args.run_dir, tasks=args.task or None, episodes=args.episodes, seed=args.seed,
-                       propagation=args.propagation, progress=not args.quiet)
+                       propagation=args.propagation, progress=not args.quiet, planner_overrides=args.overrides)
     print(f"{args.run_dir}: held-out normalized MSE {res['heldout_nmse']:.4g}")
     for name, r in res["tasks"].items():
         extra = ""
@@ -178,6 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--propagation", choices=["mean", "sample", "optimistic"], default="mean",
                    help="how the planner propagates the model for the task (default mean)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="planner.KEY=VALUE",
+                   help="plan the task differently from exploration, e.g. --set planner.horizon=30 (repeatable)")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_evaluate)

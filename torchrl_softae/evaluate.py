@@ -77,13 +77,22 @@ def zero_shot(
 
 def evaluate_run(
     run_dir: str | Path, tasks: list[str] | None = None, episodes: int = 3, seed: int = 0,
-    propagation: str = "mean", progress: bool = True,
+    propagation: str = "mean", progress: bool = True, planner_overrides: list[str] | None = None,
 ) -> dict:
     """Zero-shot returns on ``tasks`` (default: all of the env's) and held-out normalized MSE.
 
-    Results are written to ``RUN/eval/TASK.json`` and ``RUN/eval/model_accuracy.json``.
+    ``planner_overrides`` (``["planner.horizon=30", ...]``) plan the tasks differently from the
+    exploration. Results are written to ``RUN/eval/TASK.json`` (``TASK@key=value,...json`` with
+    overrides) and ``RUN/eval/model_accuracy.json``.
     """
     cfg, model, state = load_run(run_dir)
+    if planner_overrides:
+        from torchrl_softae.config import apply_overrides
+
+        bad = [o for o in planner_overrides if not o.strip().startswith("planner.")]
+        if bad:
+            raise ConfigError(f"evaluate only overrides planner settings (planner.KEY=VALUE), got {bad}")
+        apply_overrides(cfg, planner_overrides).validate()
     run = RunDir(run_dir)
     entry = get_env_entry(cfg.env)
     names = tasks or sorted(entry.tasks)
@@ -100,7 +109,8 @@ def evaluate_run(
     for name in names:
         res = zero_shot(cfg, model, entry.tasks[name], episodes=episodes, seed=seed, propagation=propagation, progress=progress)
         res["mean_return"] = float(np.mean(res["returns"]))
-        res.update(propagation=propagation, seed=seed, episodes=episodes)
-        run.write_json(run.eval_dir / f"{name}.json", res)
+        res.update(propagation=propagation, seed=seed, episodes=episodes, planner=dict(vars(cfg.planner)))
+        suffix = ("@" + ",".join(o.split(".", 1)[1] for o in planner_overrides)) if planner_overrides else ""
+        run.write_json(run.eval_dir / f"{name}{suffix}.json", res)
         out["tasks"][name] = res
     return out
