@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tensordict import TensorDict
 
 from torchrl_softae.agents import build_planner_policy
 from torchrl_softae.cli import PRESETS

@@ -1,7 +1,6 @@
 """Zero-shot evaluation: the explored model + iCEM solve a task they never saw, on the real env."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np

@@ -52,7 +52,8 @@ class GuardedEnv(TransformedEnv):
 
     def _fault_step(self, tensordict: TensorDictBase, reason: str) -> TensorDictBase:
         self.num_faults += 1
-        warnings.warn(f"{type(self.base_env).__name__}: {reason}; ending the episode (data so far is kept)", EnvFaultWarning)
+        warnings.warn(f"{type(self.base_env).__name__}: {reason}; ending the episode (data so far is kept)",
+                      EnvFaultWarning, stacklevel=2)
         out = self.full_observation_spec.zero(tensordict.batch_size)
         obs = out.get(self.observation_key)
         out.set(self.observation_key, torch.full_like(obs, float("nan")))

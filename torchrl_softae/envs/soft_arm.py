@@ -17,7 +17,6 @@ orientations of the P-1 segments between points as unit quaternions (w, x, y, z)
 """
 from __future__ import annotations
 
-import math
 
 import gymnasium as gym
 import numpy as np
@@ -158,7 +157,7 @@ class SoftArmEnv(gym.Env):
             return self._fixed_target.copy()
         if self.task in ARM_TARGETS:
             return ARM_TARGETS[self.task].copy()
-        return np.array([0.0, 0.0, self.length])  # placeholder until reset samples one
+        return np.array([0.0, 0.0, self.length])  # the rest tip, until reset draws a target
 
     # ------------------------------------------------------------------ observation
     def _observe(self) -> np.ndarray:

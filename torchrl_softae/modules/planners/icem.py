@@ -19,7 +19,7 @@ import math
 import time
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Bounded
 from torchrl.envs import EnvBase, TransformedEnv
