@@ -224,20 +224,19 @@ class EnsembleWorldModel(TensorDictModuleBase):
         k = threads // math.gcd(threads, self.ensemble_size)
         return k if n_rows % k == 0 and n_rows >= 8 * k else 1
 
-    def _inference_weights(self, layer: EnsembleLinear, dtype: torch.dtype, k: int, cols: int | slice | None):
-        """``layer``'s weights cast to ``dtype``, output columns ``cols`` (an int: the first ``cols``),
-        repeated ``k`` times per member.
+    def _inference_weights(self, layer: EnsembleLinear, dtype: torch.dtype, k: int, cols: int | None):
+        """``layer``'s weights cast to ``dtype``, first ``cols`` outputs (all if ``None``), repeated
+        ``k`` times per member.
 
         Cached until the parameters change (their version counter moves at every optimizer step).
         """
-        key = (id(layer), dtype, k, (cols.start, cols.stop) if isinstance(cols, slice) else cols)
+        key = (id(layer), dtype, k, cols)
         version = (layer.weight._version, layer.bias._version)
         hit = self._inference_cache.get(key)
         if hit is None or hit[0] != version:
             w, b = layer.weight.detach(), layer.bias.detach()
             if cols is not None:
-                sl = cols if isinstance(cols, slice) else slice(None, cols)
-                w, b = w[..., sl], b[..., sl]
+                w, b = w[..., :cols], b[..., :cols]
             if k > 1:
                 w = w.repeat_interleave(k, dim=0)
                 b = b.repeat_interleave(k, dim=0)
@@ -283,13 +282,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
             # All layers in reduced precision when asked (matmuls accumulate in fp32; the outputs
             # round to bf16): test_bf16_ranking_matches_fp32 checks that sigma-driven returns keep
             # their ranking (Spearman >= 0.95) on a trained model.
-            w, b = self._inference_weights(self.layers[last], lowp, k, d)
-            mean = torch.baddbmm(b, x, w).reshape(L, n, d).float()
-            if not want_logvar:
-                return mean, None
-            w, b = self._inference_weights(self.layers[last], lowp, k, slice(d, None))
-            logvar = torch.baddbmm(b, x, w).reshape(L, n, d).float()
-            return mean, (self._bound_logvar(logvar) if bound_logvar else logvar)
+            cols = None if (want_logvar or not self.probabilistic) else d  # both heads in one matmul
+            w, b = self._inference_weights(self.layers[last], lowp, k, cols)
+            y = torch.baddbmm(b, x, w).reshape(L, n, -1).float()
         if not want_logvar:
             return y[..., :d], None
         return y[..., :d], (self._bound_logvar(y[..., d:]) if bound_logvar else y[..., d:])
