@@ -103,7 +103,7 @@ def evaluate_run(
     heldout = heldout_set(entry, run, cfg.heldout_size)
     out["heldout_nmse"], groups = normalized_mse(model, heldout, entry.accuracy_groups)
     out.update({f"heldout_nmse/{k}": v for k, v in groups.items()})
-    run.write_json(run.eval_dir / "model_accuracy.json", {k: out[k] for k in out})
+    run.write_json(run.eval_dir / "model_accuracy.json", dict(out))
     out["tasks"] = {}
     for name in names:
         res = zero_shot(cfg, model, entry.tasks[name], episodes=episodes, seed=seed, propagation=propagation, progress=progress)

@@ -28,7 +28,7 @@ from torchrl_softae.envs.catalog import EnvEntry, get_env_entry
 from torchrl_softae.envs.guard import EnvFaultWarning, GuardedEnv
 from torchrl_softae.modules import EnsembleWorldModel
 from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
-from torchrl_softae.runs import CheckpointError, RunDir
+from torchrl_softae.runs import CheckpointError, RunDir, atomic_torch_save
 
 __all__ = ["Explorer", "explore", "make_real_env", "coverage", "heldout_set", "normalized_mse"]
 
@@ -66,8 +66,6 @@ def seed_everything(seed: int) -> None:
 
 
 def _cache_dir() -> Path:
-    import os
-
     root = os.environ.get("TORCHRL_SOFTAE_CACHE") or os.path.join(
         os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")), "torchrl_softae")
     return Path(root)
@@ -86,13 +84,9 @@ def heldout_set(entry: EnvEntry, run: RunDir | None, size: int, seed: int = 1234
     else:
         td = entry.heldout(size, seed)
         cached.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cached.with_suffix(f".{os.getpid()}.tmp")
-        torch.save(td, tmp)
-        tmp.replace(cached)
+        atomic_torch_save(td, cached)
     if run is not None:
-        tmp = run.heldout_path.with_suffix(".tmp")
-        torch.save(td, tmp)
-        tmp.replace(run.heldout_path)
+        atomic_torch_save(td, run.heldout_path)
     return td
 
 

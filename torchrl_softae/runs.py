@@ -19,6 +19,7 @@ then older dumps are deleted. A kill at any point leaves the previous checkpoint
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 import shutil
@@ -27,9 +28,29 @@ from pathlib import Path
 import torch
 from torchrl.data import LazyMemmapStorage, ReplayBuffer
 
-__all__ = ["CheckpointError", "RunDir"]
+__all__ = ["CheckpointError", "RunDir", "atomic_write_text", "atomic_torch_save"]
 
 CHECKPOINT_FORMAT = 1
+
+
+def _atomic_write(path: Path, write) -> None:
+    """``write(file)`` into a temporary sibling, flush it to disk, then ``os.replace`` it onto
+    ``path``: a reader (or a resumed run) sees the old file or the new one, never half of one."""
+    path = Path(path)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    _atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def atomic_torch_save(obj, path: Path) -> None:
+    _atomic_write(path, lambda f: torch.save(obj, f))
 
 
 class CheckpointError(RuntimeError):
@@ -81,9 +102,7 @@ class RunDir:
             raise CheckpointError(f"{self.config_path} is not valid JSON ({e}); it is corrupt") from None
 
     def write_json(self, path: Path, obj) -> None:
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text(json.dumps(obj, indent=1, sort_keys=True, default=float))
-        os.replace(tmp, path)
+        atomic_write_text(path, json.dumps(obj, indent=1, sort_keys=True, default=float))
 
     # ------------------------------------------------------------------ replay buffer
     def new_replay_buffer(self, capacity: int) -> ReplayBuffer:
@@ -118,12 +137,7 @@ class RunDir:
         rb.dumps(str(dump))
         state = {**state, "format": CHECKPOINT_FORMAT, "num_transitions": len(rb), "replay_dump": dump.name,
                  "replay_capacity": rb.storage.max_size}
-        tmp = self.checkpoint_path.with_suffix(".pt.tmp")
-        with open(tmp, "wb") as f:
-            torch.save(state, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, self.checkpoint_path)
+        atomic_torch_save(state, self.checkpoint_path)
         for old in self.path.glob("replay_ep*"):
             if old.name != dump.name:
                 shutil.rmtree(old, ignore_errors=True)
@@ -146,18 +160,14 @@ class RunDir:
 
     # ------------------------------------------------------------------ logs
     def write_logs(self, history: list[dict]) -> None:
-        jsonl = self.path / "metrics.jsonl"
-        tmp = jsonl.with_suffix(".jsonl.tmp")
-        tmp.write_text("".join(json.dumps(row, default=float) + "\n" for row in history))
-        os.replace(tmp, jsonl)
+        atomic_write_text(self.path / "metrics.jsonl", "".join(json.dumps(row, default=float) + "\n" for row in history))
         keys = sorted({k for row in history for k, v in row.items() if not isinstance(v, (dict, list))})
-        tmp = self.path / "metrics.csv.tmp"
-        with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
-            w.writeheader()
-            for row in history:
-                w.writerow({k: row.get(k, "") for k in keys})
-        os.replace(tmp, self.path / "metrics.csv")
+        buf = io.StringIO(newline="")
+        w = csv.DictWriter(buf, fieldnames=keys, extrasaction="ignore")
+        w.writeheader()
+        for row in history:
+            w.writerow({k: row.get(k, "") for k in keys})
+        atomic_write_text(self.path / "metrics.csv", buf.getvalue())
 
     def history(self) -> list[dict]:
         p = self.path / "metrics.jsonl"

@@ -224,37 +224,33 @@ class EnsembleWorldModel(TensorDictModuleBase):
         k = threads // math.gcd(threads, self.ensemble_size)
         return k if n_rows % k == 0 and n_rows >= 8 * k else 1
 
+    def _cached(self, layer: EnsembleLinear, key: tuple, build):
+        """``build(weight, bias) -> (w, b)`` for ``layer``, cached until the parameters change
+        (their version counter moves at every optimizer step and at ``load_state_dict``)."""
+        key = (id(layer), *key)
+        version = (layer.weight._version, layer.bias._version)
+        hit = self._inference_cache.get(key)
+        if hit is None or hit[0] != version:
+            w, b = build(layer.weight.detach(), layer.bias.detach())
+            hit = self._inference_cache[key] = (version, w.contiguous(), b.contiguous())
+        return hit[1], hit[2]
+
     def _inference_weights(self, layer: EnsembleLinear, dtype: torch.dtype, k: int, cols: int | None):
         """``layer``'s weights cast to ``dtype``, first ``cols`` outputs (all if ``None``), repeated
-        ``k`` times per member.
+        ``k`` times per member."""
 
-        Cached until the parameters change (their version counter moves at every optimizer step).
-        """
-        key = (id(layer), dtype, k, cols)
-        version = (layer.weight._version, layer.bias._version)
-        hit = self._inference_cache.get(key)
-        if hit is None or hit[0] != version:
-            w, b = layer.weight.detach(), layer.bias.detach()
+        def build(w, b):
             if cols is not None:
                 w, b = w[..., :cols], b[..., :cols]
-            if k > 1:
-                w = w.repeat_interleave(k, dim=0)
-                b = b.repeat_interleave(k, dim=0)
-            hit = (version, w.to(dtype).contiguous(), b.to(dtype).contiguous())
-            self._inference_cache[key] = hit
-        return hit[1], hit[2]
+            return w.repeat_interleave(k, dim=0).to(dtype), b.repeat_interleave(k, dim=0).to(dtype)
+
+        return self._cached(layer, ("batched", dtype, k, cols), build)
 
     def _stacked_first_layer(self, dtype: torch.dtype):
-        """First-layer weights of all members side by side, ``(in, L * h)`` and ``(L * h,)``; cached."""
+        """First-layer weights of all members side by side, ``(in, L * h)`` and ``(L * h,)``."""
         layer = self.layers[0]
-        key = ("stacked", id(layer), dtype)
-        version = (layer.weight._version, layer.bias._version)
-        hit = self._inference_cache.get(key)
-        if hit is None or hit[0] != version:
-            w = layer.weight.detach().permute(1, 0, 2).reshape(layer.in_features, -1)
-            hit = (version, w.to(dtype).contiguous(), layer.bias.detach().reshape(-1).to(dtype).contiguous())
-            self._inference_cache[key] = hit
-        return hit[1], hit[2]
+        return self._cached(layer, ("stacked", dtype), lambda w, b: (
+            w.permute(1, 0, 2).reshape(layer.in_features, -1).to(dtype), b.reshape(-1).to(dtype)))
 
     def network(
         self, x: torch.Tensor, with_logvar: bool = True, bound_logvar: bool = True
