@@ -126,7 +126,7 @@ def test_bf16_ranking_matches_fp32():
     obs = TensorDict({"observation": torch.rand(1, 3) * 2 - 1}, [1])
     acts = torch.rand(1, 300, 5, 5) * 2 - 1
     r32 = fp32.evaluate(obs, acts)
-    with bf16._precision_ctx():
+    with bf16._planning_ctx():
         r16 = bf16.evaluate(obs, acts)
     assert not torch.equal(r32, r16)  # the reduced-precision path really ran
     rho = spearmanr(r32[0].numpy(), r16[0].numpy()).statistic

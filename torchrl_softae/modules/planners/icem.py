@@ -177,7 +177,7 @@ class ICEMPlanner(MPCPlannerBase):
 
     # ------------------------------------------------------------------ evaluation
     @contextlib.contextmanager
-    def _precision_ctx(self):
+    def _planning_ctx(self):
         """Reduced precision in the ensemble while planning; the model env may skip re-validating
         actions, since every sample is clipped to the action spec here."""
         model, env = self._world_model, self._base_env
@@ -281,7 +281,7 @@ class ICEMPlanner(MPCPlannerBase):
         best_seq = mean.clone()
         elites = None
         iters_done, iter_times = 0, []
-        with self._precision_ctx():
+        with self._planning_ctx():
             for i in range(self.optim_steps):
                 if self.time_budget is not None and i > 0:
                     spent = time.perf_counter() - t0
