@@ -1,3 +1,5 @@
+import warnings
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -39,9 +41,24 @@ def test_members_are_one_batched_computation_matching_independent_mlps():
                 h = torch.nn.functional.silu(h)
         ref = obs + m.output_normalizer.denormalize(h[:, :3])
         torch.testing.assert_close(members[l], ref)
-    # the inference path (no autograd: thread-balanced row chunks, cached weights) agrees
+    # both inference paths (no autograd, cached weights) agree with it: grouped 1x1 convolutions
+    # (oneDNN, CPU) and batched matmuls in thread-balanced row chunks, with and without the
+    # log-variance head, on shared and on per-member inputs
     with torch.no_grad():
         torch.testing.assert_close(m.predict_members(obs.repeat(4, 1), act.repeat(4, 1))[0][:, :6], members)
+        xs = x.repeat(4, 1)
+        ref_y = torch.stack([m.layers[-1](torch.nn.functional.silu(m.layers[1](torch.nn.functional.silu(
+            m.layers[0](xs.expand(5, -1, -1))))))])[0]
+        assert torch.backends.mkldnn.is_available()  # the CPU build ships oneDNN: the conv path is tested
+        for cols in (None, 3):
+            want = ref_y if cols is None else ref_y[..., :cols]
+            torch.testing.assert_close(m._network_grouped_conv(xs, torch.float32, cols), want)
+            torch.testing.assert_close(m._network_bmm(xs, torch.float32, cols), want)
+        torch.testing.assert_close(m._network_bmm(xs.expand(5, -1, -1), torch.float32, None), ref_y)
+        with warnings.catch_warnings():  # flags() warns about Intel-GPU TF32, irrelevant here
+            warnings.simplefilter("ignore")
+            with torch.backends.mkldnn.flags(enabled=False):  # falls back to the matmul path
+                torch.testing.assert_close(m.predict_members(obs, act)[0], members)
     # members differ (independent initialization)
     assert (members[0] - members[1]).abs().max() > 1e-3
 

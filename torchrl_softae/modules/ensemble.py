@@ -1,7 +1,8 @@
 """Probabilistic ensemble world model [mu_n, sigma_n] (paper: "Learning Uncertainty Aware Dynamics").
 
 All L members live in stacked weight tensors of shape ``(L, in, out)`` and run in one
-``torch.baddbmm`` per layer: there is no Python loop over members anywhere on the forward path.
+``torch.baddbmm`` per layer (training), or one grouped convolution per layer (CPU inference):
+there is no Python loop over members anywhere on the forward path.
 
 Each member ``l`` predicts the normalized state *delta* ``(s' - s - m) / v`` from the normalized
 input ``(s, a)`` together with a bounded log-variance (PETS soft bounds). In original units
@@ -275,34 +276,87 @@ class EnsembleWorldModel(TensorDictModuleBase):
             for layer in self.layers[:last]:
                 x = self.activation(layer(x))
             y = self.layers[last](x)
-        else:  # inference/planning: thread-balanced batch, optional reduced precision
-            L = self.ensemble_size
+        else:
             lowp = self.planning_dtype or torch.float32
-            hidden = self.layers[:last]
-            if x.dim() == 2:
-                # shared input: the first layer of all members is ONE (N, in) x (in, L*h) GEMM;
-                # a batched matmul with a small inner dimension was 3x slower (measured)
-                n = x.shape[0]
-                w, b = self._stacked_first_layer(lowp)
-                x = torch.addmm(b, x.to(lowp), w).view(n, L, -1).transpose(0, 1).contiguous()
-                x = self._activate_(x)
-                hidden = hidden[1:]
-            n = x.shape[1]
-            # (bf16 bmm kernels are not batch-parallel in the same way: splitting does not pay)
-            k = self._row_split(n) if lowp == torch.float32 else 1
-            x = x.reshape(L * k, n // k, x.shape[-1])
-            for layer in hidden:
-                w, b = self._inference_weights(layer, lowp, k, None)
-                x = self._activate_(torch.baddbmm(b, x.to(lowp), w))
-            # All layers in reduced precision when asked (matmuls accumulate in fp32; the outputs
-            # round to bf16): test_bf16_ranking_matches_fp32 checks that sigma-driven returns keep
-            # their ranking (Spearman >= 0.95) on a trained model.
             cols = None if (want_logvar or not self.probabilistic) else d  # both heads in one matmul
-            w, b = self._inference_weights(self.layers[last], lowp, k, cols)
-            y = torch.baddbmm(b, x, w).reshape(L, n, -1).float()
+            if x.dim() == 2 and self._use_grouped_conv(x):
+                y = self._network_grouped_conv(x, lowp, cols)
+            else:
+                y = self._network_bmm(x, lowp, cols)
         if not want_logvar:
             return y[..., :d], None
         return y[..., :d], (self._bound_logvar(y[..., d:]) if bound_logvar else y[..., d:])
+
+    @staticmethod
+    def _use_grouped_conv(x: torch.Tensor) -> bool:
+        return x.device.type == "cpu" and torch.backends.mkldnn.is_available() and torch.backends.mkldnn.enabled
+
+    def _network_grouped_conv(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
+        """Inference on a shared ``(N, in)`` input: the ensemble as grouped 1x1 convolutions.
+
+        The ``N`` rows are the pixels of a channels-last ``(1, C, N, 1)`` image whose channels are
+        the ``L`` members' features side by side, so layer ``l`` of all members is ONE oneDNN
+        convolution with ``groups=L`` (block-diagonal weights, no member loop) and activations stay
+        in one ``(N, L * h)`` buffer from layer to layer (no transposes). Why not ``baddbmm``: on this
+        AMD CPU, MKL's fp32 GEMM runs at about 215 GFLOP/s, half of what oneDNN's AVX-512 kernels
+        reach (about 450; measured by benchmarks/planning_speed.py); in bf16 both are near 900.
+
+        Returns the ``(L, N, out)`` output as a view of an ``(N, L, out)`` buffer.
+        """
+        L, n = self.ensemble_size, x.shape[0]
+        h = x.to(dtype).t().unsqueeze(0).unsqueeze(-1)  # (1, in, N, 1), channels-last view of x
+        last = len(self.layers) - 1
+        for i, layer in enumerate(self.layers):
+            w, b = self._conv_weights(layer, dtype, cols if i == last else None, first=i == 0)
+            h = F.conv2d(h, w, b, groups=1 if i == 0 else L)
+            if i < last:
+                h = self._activate_(h)
+        # (1, L * out, N, 1) channels-last is an (N, L * out) buffer: view it as (L, N, out)
+        return h.squeeze(0).squeeze(-1).t().reshape(n, L, -1).transpose(0, 1).float()
+
+    def _conv_weights(self, layer: EnsembleLinear, dtype: torch.dtype, cols: int | None, first: bool):
+        """``layer`` as a grouped 1x1 convolution: weight ``(L * out, in, 1, 1)`` (channels-last:
+        oneDNN's fast path needs the weight and the input in the same memory format) and bias
+        ``(L * out,)``; the first layer's members share the input (``groups=1``, same shapes)."""
+
+        def build(w, b):
+            if cols is not None:
+                w, b = w[..., :cols], b[..., :cols]
+            L, i, o = w.shape
+            w = w.transpose(1, 2).reshape(L * o, i, 1, 1).to(dtype).contiguous()
+            return w.to(memory_format=torch.channels_last), b.reshape(L * o).to(dtype)
+
+        key = (id(layer), "conv", dtype, cols)
+        version = (layer.weight._version, layer.bias._version)
+        hit = self._inference_cache.get(key)
+        if hit is None or hit[0] != version:  # not _cached: .contiguous() would undo channels-last
+            hit = self._inference_cache[key] = (version, *build(layer.weight.detach(), layer.bias.detach()))
+        return hit[1], hit[2]
+
+    def _network_bmm(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
+        """Inference with batched matmuls: ``x`` ``(N, in)`` shared or ``(L, N, in)`` per member."""
+        L = self.ensemble_size
+        hidden = self.layers[:-1]
+        if x.dim() == 2:
+            # shared input: the first layer of all members is ONE (N, in) x (in, L*h) GEMM;
+            # a batched matmul with a small inner dimension was 3x slower (measured)
+            n = x.shape[0]
+            w, b = self._stacked_first_layer(dtype)
+            x = torch.addmm(b, x.to(dtype), w).view(n, L, -1).transpose(0, 1).contiguous()
+            x = self._activate_(x)
+            hidden = hidden[1:]
+        n = x.shape[1]
+        # (bf16 bmm kernels are not batch-parallel in the same way: splitting does not pay)
+        k = self._row_split(n) if dtype == torch.float32 else 1
+        x = x.reshape(L * k, n // k, x.shape[-1])
+        for layer in hidden:
+            w, b = self._inference_weights(layer, dtype, k, None)
+            x = self._activate_(torch.baddbmm(b, x.to(dtype), w))
+        # All layers in reduced precision when asked (matmuls accumulate in fp32; the outputs
+        # round to bf16): test_bf16_ranking_matches_fp32 checks that sigma-driven returns keep
+        # their ranking (Spearman >= 0.95) on a trained model.
+        w, b = self._inference_weights(self.layers[-1], dtype, k, cols)
+        return torch.baddbmm(b, x, w).reshape(L, n, -1).float()
 
     def _activate_(self, x: torch.Tensor) -> torch.Tensor:
         """Activation in place on a fresh matmul output (inference only): a second large
