@@ -50,7 +50,9 @@ def run(args, tasks: list[str], overrides: list[str], metric_keys: dict[str, str
             for task in tasks:
                 f = run_dir / "eval" / f"{task}.json"
                 res = json.loads(f.read_text()) if f.exists() else None
-                if res is None or res.get("episodes") != args.eval_episodes:
+                stale = res is None or res.get("episodes") != args.eval_episodes or \
+                    res.get("episodes_explored") != history[-1]["episode"] + 1
+                if stale:
                     res = evaluate_run(run_dir, tasks=[task], episodes=args.eval_episodes, seed=777)["tasks"][task]
                 row[f"{task}/return"] = float(np.mean(res["returns"]))
                 for key in metric_keys:

@@ -108,7 +108,9 @@ def evaluate_run(
     for name in names:
         res = zero_shot(cfg, model, entry.tasks[name], episodes=episodes, seed=seed, propagation=propagation, progress=progress)
         res["mean_return"] = float(np.mean(res["returns"]))
-        res.update(propagation=propagation, seed=seed, episodes=episodes, planner=dict(vars(cfg.planner)))
+        # which model was evaluated: a resumed, longer exploration makes this result stale
+        res.update(propagation=propagation, seed=seed, episodes=episodes, planner=dict(vars(cfg.planner)),
+                   episodes_explored=out["episodes_explored"])
         suffix = ("@" + ",".join(o.split(".", 1)[1] for o in planner_overrides)) if planner_overrides else ""
         run.write_json(run.eval_dir / f"{name}{suffix}.json", res)
         out["tasks"][name] = res
