@@ -13,7 +13,7 @@ import torch
 
 from torchrl_softae.cli import PRESETS
 from torchrl_softae.config import make_config
-from torchrl_softae.evaluate import evaluate_run
+from torchrl_softae.evaluate import evaluate_run, reference_returns
 from torchrl_softae.explore import explore
 from torchrl_softae.plotting import plot_comparison
 
@@ -34,8 +34,15 @@ def parse(doc: str, env: str, episodes: int, eval_episodes: int) -> argparse.Nam
     return p.parse_args()
 
 
-def run(args, tasks: list[str], overrides: list[str], metric_keys: dict[str, str], note: str = "") -> str:
-    """Explore + evaluate every (method, seed); print and save a markdown table; return it."""
+REFERENCES = {"random": "random actions, no model", "zero": "no control (zero action)"}
+
+
+def run(args, tasks: list[str], overrides: list[str], metric_keys: dict[str, str], note: str = "",
+        references: bool = False) -> str:
+    """Explore + evaluate every (method, seed); print and save a markdown table; return it.
+
+    ``references``: add rows with the task returns of model-free references (random actions and
+    no control) on the same evaluation episodes, to tell solving a task from not trying."""
     torch.set_num_threads(args.threads)
     root = Path(args.root or RESULTS / "runs" / f"exploration_{args.env}")
     rows: dict[str, list] = {}
@@ -73,11 +80,25 @@ def run(args, tasks: list[str], overrides: list[str], metric_keys: dict[str, str
     names.update({f"{t}/return": f"{t} return" for t in tasks})
     names.update({f"{t}/{k}": f"{t} {label}" for t in tasks for k, label in metric_keys.items()})
     lines = [f"{args.env}: {budget} transitions per run ({args.episodes} episodes), seeds {args.seeds}, "
-             f"`quick` preset{note}, zero-shot tasks over {args.eval_episodes} episodes (mean propagation)", "",
+             f"`quick` preset{note}, zero-shot tasks over {args.eval_episodes} episodes (mean propagation); "
+             f"mean ± std over seeds" + ("; reference rows over the evaluation episodes" if references else ""), "",
              "| method | " + " | ".join(names[c] for c in cols) + " |", "|---" * (len(cols) + 1) + "|"]
     for m in args.methods:
         cells = [ms([r[c] for r in rows[m]], ".4g" if c.startswith("heldout_nmse") else ".3g") for c in cols]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    if references:
+        cache = root / "references.json"
+        known = json.loads(cache.read_text()) if cache.exists() else {}
+        for policy, label in REFERENCES.items():
+            for task in tasks:
+                key = f"{task}/{policy}/{args.eval_episodes}"
+                if key not in known:
+                    known[key] = reference_returns(args.env, task, policy, args.eval_episodes, seed=777)
+            cache.write_text(json.dumps(known, indent=1))
+            by_col = {f"{t}/return": known[f"{t}/{policy}/{args.eval_episodes}"] for t in tasks}
+            cells = [ms(by_col[c], ".3g") if c in by_col else "-" for c in cols]
+            lines.append(f"| *{label}* | " + " | ".join(cells) + " |")
+        rows["references"] = known
     table = "\n".join(lines)
     print("\n" + table)
     RESULTS.mkdir(parents=True, exist_ok=True)

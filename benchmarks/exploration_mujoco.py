@@ -32,5 +32,5 @@ if __name__ == "__main__":
         args = argparse.Namespace(env=env, episodes=a.episodes or BUDGET[env], seeds=a.seeds, eval_episodes=a.eval_episodes,
                                   methods=["random", "softae"], root=None, threads=a.threads, overrides=[])
         tables.append(run(args, tasks=TASKS[env], overrides=["planner.horizon=20", "heldout_size=2000"],
-                          metric_keys={}, note=", iCEM H=20"))
+                          metric_keys={}, note=", iCEM H=20", references=True))
     (RESULTS / "exploration_mujoco.md").write_text("\n\n".join(tables) + "\n")

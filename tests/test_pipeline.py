@@ -196,3 +196,14 @@ def test_evaluate_with_planner_overrides(tmp_path, capsys):
     assert res["planner"]["horizon"] == 3
     assert main(["evaluate", "--run-dir", str(tmp_path), "--task", "spin", "--set", "train.lr=1"]) == 2
     assert "only overrides planner settings" in capsys.readouterr().err
+
+
+def test_reference_returns_are_seeded_and_tell_random_from_no_control():
+    from torchrl_softae.evaluate import reference_returns
+
+    rand = reference_returns("Pendulum-v1", "swingup", "random", episodes=2, seed=3)
+    assert rand == reference_returns("Pendulum-v1", "swingup", "random", episodes=2, seed=3)
+    zero = reference_returns("Pendulum-v1", "swingup", "zero", episodes=2, seed=3)
+    assert len(zero) == 2 and zero != rand
+    with pytest.raises(ValueError, match="'greedy'"):
+        reference_returns("Pendulum-v1", "swingup", "greedy")

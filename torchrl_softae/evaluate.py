@@ -14,7 +14,7 @@ from torchrl_softae.modules import EnsembleWorldModel
 from torchrl_softae.runs import CheckpointError, RunDir
 from torchrl_softae.tasks.base import Task, TaskReward
 
-__all__ = ["load_run", "zero_shot", "evaluate_run"]
+__all__ = ["load_run", "zero_shot", "reference_returns", "evaluate_run"]
 
 
 def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, dict]:
@@ -72,6 +72,39 @@ def zero_shot(
         bar.close()
     env.close()
     return {"returns": returns, "metrics": metrics}
+
+
+@torch.no_grad()
+def reference_returns(env: str, task: str, policy: str = "random", episodes: int = 3, seed: int = 0) -> list[float]:
+    """Task returns without a model, on the same episodes (seeds) as :func:`zero_shot`.
+
+    ``policy="random"``: uniform random actions from the action spec (what random exploration
+    does); ``"zero"``: the centre of the action space at every step (no control). They tell a
+    zero-shot controller that solves a task from one that does no better than not trying.
+    """
+    if policy not in ("random", "zero"):
+        raise ValueError(f"reference policy {policy!r}: expected 'random' or 'zero'")
+    entry = get_env_entry(env)
+    if task not in entry.tasks:
+        raise ConfigError(f"unknown task {task!r} for env {env!r}; valid tasks: {', '.join(sorted(entry.tasks))}")
+    t = entry.tasks[task]
+    real = make_real_env(entry, t.horizon)
+    real.append_transform(TaskReward(t))
+    spec = real.action_spec
+    centre = (spec.space.low + spec.space.high) / 2
+
+    def zero(td):
+        return td.set("action", centre.expand(*td.batch_size, *centre.shape).clone())
+
+    returns = []
+    for i in range(episodes):
+        s = episode_seed(seed, i)
+        seed_everything(s)
+        real.set_seed(s)
+        traj = real.rollout(t.horizon, None if policy == "random" else zero, break_when_any_done=True)
+        returns.append(float(traj["next", "reward"].sum()))
+    real.close()
+    return returns
 
 
 def evaluate_run(
