@@ -232,8 +232,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         version = (layer.weight._version, layer.bias._version)
         hit = self._inference_cache.get(key)
         if hit is None or hit[0] != version:
-            w, b = build(layer.weight.detach(), layer.bias.detach())
-            hit = self._inference_cache[key] = (version, w.contiguous(), b.contiguous())
+            hit = self._inference_cache[key] = (version, *build(layer.weight.detach(), layer.bias.detach()))
         return hit[1], hit[2]
 
     def _inference_weights(self, layer: EnsembleLinear, dtype: torch.dtype, k: int, cols: int | None):
@@ -243,7 +242,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
         def build(w, b):
             if cols is not None:
                 w, b = w[..., :cols], b[..., :cols]
-            return w.repeat_interleave(k, dim=0).to(dtype), b.repeat_interleave(k, dim=0).to(dtype)
+            return (w.repeat_interleave(k, dim=0).to(dtype).contiguous(),
+                    b.repeat_interleave(k, dim=0).to(dtype).contiguous())
 
         return self._cached(layer, ("batched", dtype, k, cols), build)
 
@@ -251,7 +251,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         """First-layer weights of all members side by side, ``(in, L * h)`` and ``(L * h,)``."""
         layer = self.layers[0]
         return self._cached(layer, ("stacked", dtype), lambda w, b: (
-            w.permute(1, 0, 2).reshape(layer.in_features, -1).to(dtype), b.reshape(-1).to(dtype)))
+            w.permute(1, 0, 2).reshape(layer.in_features, -1).to(dtype).contiguous(), b.reshape(-1).to(dtype)))
 
     def network(
         self, x: torch.Tensor, with_logvar: bool = True, bound_logvar: bool = True
@@ -297,9 +297,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
         The ``N`` rows are the pixels of a channels-last ``(1, C, N, 1)`` image whose channels are
         the ``L`` members' features side by side, so layer ``l`` of all members is ONE oneDNN
         convolution with ``groups=L`` (block-diagonal weights, no member loop) and activations stay
-        in one ``(N, L * h)`` buffer from layer to layer (no transposes). Why not ``baddbmm``: on this
-        AMD CPU, MKL's fp32 GEMM runs at about 215 GFLOP/s, half of what oneDNN's AVX-512 kernels
-        reach (about 450; measured by benchmarks/planning_speed.py); in bf16 both are near 900.
+        in one ``(N, L * h)`` buffer from layer to layer (no transposes). Why not ``baddbmm``: MKL,
+        torch's fp32 GEMM on x86, takes an AVX2 path on AMD CPUs; on the benchmark machine (AMD
+        EPYC, AVX-512) it runs at about 220 GFLOP/s against oneDNN's 450 (benchmarks/planning_speed.py
+        prints both); in bf16 both are near 900.
 
         Returns the ``(L, N, out)`` output as a view of an ``(N, L, out)`` buffer.
         """
@@ -307,31 +308,27 @@ class EnsembleWorldModel(TensorDictModuleBase):
         h = x.to(dtype).t().unsqueeze(0).unsqueeze(-1)  # (1, in, N, 1), channels-last view of x
         last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):
-            w, b = self._conv_weights(layer, dtype, cols if i == last else None, first=i == 0)
+            w, b = self._conv_weights(layer, dtype, cols if i == last else None)
             h = F.conv2d(h, w, b, groups=1 if i == 0 else L)
             if i < last:
                 h = self._activate_(h)
         # (1, L * out, N, 1) channels-last is an (N, L * out) buffer: view it as (L, N, out)
         return h.squeeze(0).squeeze(-1).t().reshape(n, L, -1).transpose(0, 1).float()
 
-    def _conv_weights(self, layer: EnsembleLinear, dtype: torch.dtype, cols: int | None, first: bool):
-        """``layer`` as a grouped 1x1 convolution: weight ``(L * out, in, 1, 1)`` (channels-last:
-        oneDNN's fast path needs the weight and the input in the same memory format) and bias
-        ``(L * out,)``; the first layer's members share the input (``groups=1``, same shapes)."""
+    def _conv_weights(self, layer: EnsembleLinear, dtype: torch.dtype, cols: int | None):
+        """``layer`` as a grouped 1x1 convolution: weight ``(L * out, in, 1, 1)`` in channels-last
+        (oneDNN's fast path needs the weight in the input's memory format; a plain contiguous
+        weight was 7x slower) and bias ``(L * out,)``. The first layer's members share the input:
+        the same weight with ``groups=1``."""
 
         def build(w, b):
             if cols is not None:
                 w, b = w[..., :cols], b[..., :cols]
             L, i, o = w.shape
             w = w.transpose(1, 2).reshape(L * o, i, 1, 1).to(dtype).contiguous()
-            return w.to(memory_format=torch.channels_last), b.reshape(L * o).to(dtype)
+            return w.to(memory_format=torch.channels_last), b.reshape(L * o).to(dtype).contiguous()
 
-        key = (id(layer), "conv", dtype, cols)
-        version = (layer.weight._version, layer.bias._version)
-        hit = self._inference_cache.get(key)
-        if hit is None or hit[0] != version:  # not _cached: .contiguous() would undo channels-last
-            hit = self._inference_cache[key] = (version, *build(layer.weight.detach(), layer.bias.detach()))
-        return hit[1], hit[2]
+        return self._cached(layer, ("conv", dtype, cols), build)
 
     def _network_bmm(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
         """Inference with batched matmuls: ``x`` ``(N, in)`` shared or ``(L, N, in)`` per member."""
