@@ -1,6 +1,6 @@
 """Random vs SoftAE on the MuJoCo robots, zero-shot tasks (iii)-(viii).
 
-    python benchmarks/exploration_mujoco.py                          # all three envs, 1 seed
+    python benchmarks/exploration_mujoco.py                          # all three envs, seeds 0 and 1
     python benchmarks/exploration_mujoco.py --envs MSKLeg-v0 --episodes 4
 
 Each method explores for a budget of episodes (fish 200 steps, leg 500 steps) chosen so that
@@ -23,7 +23,7 @@ if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--envs", nargs="+", default=list(TASKS))
     p.add_argument("--episodes", type=int, default=None, help="episodes per run (default: BUDGET per env)")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--eval-episodes", type=int, default=4)
     p.add_argument("--threads", type=int, default=2)
     a = p.parse_args()
