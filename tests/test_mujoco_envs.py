@@ -123,7 +123,8 @@ def test_scripted_hopping_goes_ccw_or_cw_with_the_motor_roll():
     assert cw < -0.3, cw
 
 
-def test_divergence_flagged():
+def test_divergence_flagged(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # MuJoCo logs the instability to ./MUJOCO_LOG.TXT
     for env in (SoftFishEnv(), MSKLegEnv()):
         env.reset(seed=0)
         env.data.qvel[:] = 1e12
