@@ -47,8 +47,8 @@ def test_members_are_one_batched_computation_matching_independent_mlps():
     with torch.no_grad():
         torch.testing.assert_close(m.predict_members(obs.repeat(4, 1), act.repeat(4, 1))[0][:, :6], members)
         xs = x.repeat(4, 1)
-        ref_y = torch.stack([m.layers[-1](torch.nn.functional.silu(m.layers[1](torch.nn.functional.silu(
-            m.layers[0](xs.expand(5, -1, -1))))))])[0]
+        silu = torch.nn.functional.silu
+        ref_y = m.layers[2](silu(m.layers[1](silu(m.layers[0](xs.expand(5, -1, -1))))))  # (L, N, 2 d_s)
         assert torch.backends.mkldnn.is_available()  # the CPU build ships oneDNN: the conv path is tested
         for cols in (None, 3):
             want = ref_y if cols is None else ref_y[..., :cols]

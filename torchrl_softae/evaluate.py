@@ -36,6 +36,27 @@ def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, di
     return cfg, model.eval(), state
 
 
+def _task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for) -> dict:
+    """Roll out ``policy_for(env, episode_seed)`` for ``episodes`` seeded episodes of ``task`` on the
+    real env with the task's reward: ``{"returns": [...], "metrics": [{...}, ...]}``.
+
+    The one place that fixes the evaluation episodes: zero-shot controllers and the model-free
+    references see the same initial states."""
+    real = make_real_env(get_env_entry(env), task.horizon)
+    real.append_transform(TaskReward(task))
+    returns, metrics = [], []
+    for i in range(episodes):
+        s = episode_seed(seed, i)
+        seed_everything(s)
+        policy = policy_for(real, s)
+        real.set_seed(s)
+        traj = real.rollout(task.horizon, policy, break_when_any_done=True)
+        returns.append(float(traj["next", "reward"].sum()))
+        metrics.append(task.metrics(traj))
+    real.close()
+    return {"returns": returns, "metrics": metrics}
+
+
 @torch.no_grad()
 def zero_shot(
     cfg: ExploreConfig,
@@ -51,27 +72,19 @@ def zero_shot(
     Returns ``{"returns": [...], "metrics": [{...}, ...]}``, one entry per episode; deterministic
     for a given seed.
     """
-    entry = get_env_entry(cfg.env)
-    env = make_real_env(entry, task.horizon)
-    env.append_transform(TaskReward(task))
-    returns, metrics = [], []
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=episodes * task.horizon, desc=f"zero-shot {task.name}", unit="step", leave=False)
-    for i in range(episodes):
-        s = episode_seed(seed, i)
-        seed_everything(s)
-        policy = build_planner_policy(model, env.action_spec, cfg.planner, mode=propagation, reward=task, seed=s, progress=bar)
-        env.set_seed(s)
-        traj = env.rollout(task.horizon, policy, break_when_any_done=True)
-        returns.append(float(traj["next", "reward"].sum()))
-        metrics.append(task.metrics(traj))
+
+    def planner(real, s):
+        return build_planner_policy(model, real.action_spec, cfg.planner, mode=propagation, reward=task, seed=s, progress=bar)
+
+    res = _task_rollouts(cfg.env, task, episodes, seed, planner)
     if bar is not None:
         bar.close()
-    env.close()
-    return {"returns": returns, "metrics": metrics}
+    return res
 
 
 @torch.no_grad()
@@ -87,24 +100,15 @@ def reference_returns(env: str, task: str, policy: str = "random", episodes: int
     entry = get_env_entry(env)
     if task not in entry.tasks:
         raise ConfigError(f"unknown task {task!r} for env {env!r}; valid tasks: {', '.join(sorted(entry.tasks))}")
-    t = entry.tasks[task]
-    real = make_real_env(entry, t.horizon)
-    real.append_transform(TaskReward(t))
-    spec = real.action_spec
-    centre = (spec.space.low + spec.space.high) / 2
 
-    def zero(td):
-        return td.set("action", centre.expand(*td.batch_size, *centre.shape).clone())
+    def reference_policy(real, s):
+        if policy == "random":
+            return None  # TorchRL's rollout samples from the action spec
+        spec = real.action_spec
+        centre = (spec.space.low + spec.space.high) / 2
+        return lambda td: td.set("action", centre.expand(*td.batch_size, *centre.shape).clone())
 
-    returns = []
-    for i in range(episodes):
-        s = episode_seed(seed, i)
-        seed_everything(s)
-        real.set_seed(s)
-        traj = real.rollout(t.horizon, None if policy == "random" else zero, break_when_any_done=True)
-        returns.append(float(traj["next", "reward"].sum()))
-    real.close()
-    return returns
+    return _task_rollouts(env, entry.tasks[task], episodes, seed, reference_policy)["returns"]
 
 
 def evaluate_run(
