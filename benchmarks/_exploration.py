@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchrl_softae.cli import PRESETS
-from torchrl_softae.config import make_config
-from torchrl_softae.evaluate import evaluate_run, reference_returns
-from torchrl_softae.explore import explore
-from torchrl_softae.plotting import plot_comparison
+from torchrl_softae.pipeline.cli import PRESETS
+from torchrl_softae.pipeline.config import make_config
+from torchrl_softae.pipeline.evaluate import evaluate_run, reference_returns
+from torchrl_softae.pipeline.explore import explore
+from torchrl_softae.pipeline.plots import plot_comparison
 
 METHODS = ["random", "mean-ae", "pets-ae", "softae"]
 RESULTS = Path(__file__).parent / "results"

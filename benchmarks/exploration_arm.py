@@ -3,7 +3,7 @@
     python benchmarks/exploration_arm.py                         # SoftArm-v0, 3 seeds
     python benchmarks/exploration_arm.py --episodes 2 --seeds 0  # smoke run
 
-Each method explores for EPISODES x 200 transitions (``quick`` preset, iCEM H=10 as in Table S8),
+Each method explores for EPISODES x 200 transitions (``quick`` preset, iCEM H=10 as in Table S7),
 then solves reach-close (i) and reach-far (ii) zero-shot. Reported: held-out normalized MSE on
 ramp-controller reaching rollouts (2000 transitions), tip x-z coverage, task returns (sum of
 g(d) over 200 steps, max 200) and final tip error. The paper's normalized MSE (its own budget and

@@ -5,7 +5,7 @@ track a square and a lemniscate zero-shot; the paper's real-arm numbers alongsid
     python benchmarks/sopra_eval.py --episodes 1 --targets 3 --smoke
 
 Exploration: EPISODES x 200 steps per method (``quick`` preset, iCEM H=5, colored-noise exponent
-1.0 as in Table S8; H-UCRL is optimistic on the reach-close task reward). Evaluation: 20 targets
+1.0 as in Table S7; H-UCRL is optimistic on the reach-close task reward). Evaluation: 20 targets
 drawn uniformly from the twin's reachable workspace (settled tips under random pressures within
 the 400 mbar cap), 20 steps each (task horizon of the paper), reward g(d) summed (max 20), final
 tip error in mm. Tracking: a 30 mm square and a 40 x 20 mm lemniscate in the horizontal plane
@@ -22,13 +22,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchrl_softae.agents import build_planner_policy
-from torchrl_softae.cli import PRESETS
-from torchrl_softae.config import make_config
-from torchrl_softae.envs.sopra import SoPrAEnv
-from torchrl_softae.envs.sopra.entry import sopra_reach_task
-from torchrl_softae.evaluate import load_run
-from torchrl_softae.explore import explore
+from torchrl_softae.pipeline.builders import build_planner_policy
+from torchrl_softae.pipeline.cli import PRESETS
+from torchrl_softae.pipeline.config import make_config
+from torchrl_softae.envs.robots.sopra import SoPrAEnv
+from torchrl_softae.pipeline.entries.sopra import sopra_reach_task
+from torchrl_softae.pipeline.evaluate import load_run
+from torchrl_softae.pipeline.explore import explore
 
 RESULTS = Path(__file__).parent / "results"
 PAPER = {  # real SoPrA, the paper's table: mean return, mean / min / max tip error [mm]
@@ -49,7 +49,7 @@ def rollout_to_target(cfg, model, env, target, steps, seed):
 def track(cfg, model, env, path, seed):
     """MPC whose target is the next reference point at every step (tensor updated in place)."""
     target = torch.as_tensor(path[0], dtype=torch.float32).clone()
-    from torchrl_softae.envs.soft_arm import reach_reward
+    from torchrl_softae.envs.robots.soft_arm import reach_reward
     from torchrl_softae.tasks.base import Task
 
     task = Task("track", lambda s, a, s2: reach_reward((s2[..., 0:3] - target).norm(dim=-1)), len(path))

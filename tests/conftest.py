@@ -2,8 +2,8 @@ import os
 
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
-os.environ.setdefault("MUJOCO_GL", "osmesa")
-os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+# No GL backend is forced: nothing but the `rendering` tests may need one (they skip, saying why,
+# where no backend works).
 
 import pytest
 import torch
@@ -15,3 +15,13 @@ torch.set_num_threads(2)
 def _seed():
     torch.manual_seed(0)
     yield
+
+
+def render_or_skip(env):
+    """``env.render()``, or skip with the reason when this machine has no offscreen GL backend."""
+    from torchrl_softae.envs.robots.rendering import RenderingUnavailable
+
+    try:
+        return env.render()
+    except RenderingUnavailable as e:
+        pytest.skip(str(e))

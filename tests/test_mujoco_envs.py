@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 import torchrl_softae  # noqa: F401
-from torchrl_softae.envs.fish import SEGMENTS, SoftFishEnv, fish_layout
-from torchrl_softae.envs.msk_leg import HaselMuscleModel, MSKLegEnv, leg_layout
+from torchrl_softae.envs.robots.fish import SEGMENTS, SoftFishEnv, fish_layout
+from torchrl_softae.envs.robots.msk_leg import HaselMuscleModel, MSKLegEnv, leg_layout
 
 BODY_LENGTH = 2 * sum(s[1] for s in SEGMENTS)  # 0.48 m
 
@@ -132,10 +132,13 @@ def test_divergence_flagged(tmp_path, monkeypatch):
         assert term and info["diverged"]
 
 
+@pytest.mark.rendering
 def test_render_offscreen():
+    from conftest import render_or_skip
+
     for env in (SoftFishEnv(), MSKLegEnv()):
         env.reset(seed=0)
-        frame = env.render()
+        frame = render_or_skip(env)
         assert frame.shape == (240, 320, 3) and frame.dtype == np.uint8 and frame.std() > 0
         env.close()
 
@@ -147,9 +150,9 @@ def test_specs_checkers_and_pipeline(env_id, tmp_path):
     from torchrl.envs import GymEnv
     from torchrl.envs.utils import check_env_specs
 
-    from torchrl_softae.cli import main
-    from torchrl_softae.envs.catalog import get_env_entry
-    from torchrl_softae.runs import RunDir
+    from torchrl_softae.pipeline.cli import main
+    from torchrl_softae.pipeline.catalog import get_env_entry
+    from torchrl_softae.pipeline.runs import RunDir
 
     check_env_specs(GymEnv(env_id))
     check_env_specs(get_env_entry(env_id).make())

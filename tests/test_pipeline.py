@@ -10,11 +10,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchrl_softae.cli import main
-from torchrl_softae.config import ConfigError, make_config
-from torchrl_softae.evaluate import evaluate_run
-from torchrl_softae.explore import explore
-from torchrl_softae.runs import CheckpointError, RunDir
+from torchrl_softae.pipeline.cli import main
+from torchrl_softae.pipeline.config import ConfigError, make_config
+from torchrl_softae.pipeline.evaluate import evaluate_run
+from torchrl_softae.pipeline.explore import explore
+from torchrl_softae.pipeline.runs import CheckpointError, RunDir
 
 TINY = [
     "--set", "model.num_cells=32", "--set", "model.depth=2", "--set", "planner.horizon=5",
@@ -59,7 +59,7 @@ def _deterministic(history):
 
 def test_killed_run_resumes_with_identical_results(tmp_path):
     argv = _explore_argv(tmp_path / "killed", "softae", episodes=5, length=40)
-    cmd = [sys.executable, "-c", "import sys; from torchrl_softae.cli import main; sys.exit(main(sys.argv[1:]))", *argv]
+    cmd = [sys.executable, "-c", "import sys; from torchrl_softae.pipeline.cli import main; sys.exit(main(sys.argv[1:]))", *argv]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     metrics = tmp_path / "killed" / "metrics.jsonl"
     deadline = time.time() + 120
@@ -96,7 +96,7 @@ def test_swingup_task_reward_matches_gymnasium():
     """The task reward computed from observations equals Pendulum-v1's own reward."""
     from torchrl.envs import GymEnv
 
-    from torchrl_softae.envs.catalog import get_env_entry
+    from torchrl_softae.pipeline.catalog import get_env_entry
 
     task = get_env_entry("Pendulum-v1").tasks["swingup"]
     env = GymEnv("Pendulum-v1")
@@ -162,8 +162,12 @@ def test_sweep_file_expands_to_grid(capsys):
     root = Path(__file__).resolve().parents[1]
     assert main(["sweep", str(root / "sweeps" / "pendulum.yaml"), "--dry-run"]) == 0
     out = capsys.readouterr().out
-    assert out.count("softae explore") == 4 * 3 * 2
-    assert "--method=pets-ae" in out and "--beta=1.0" in out
+    lines = [line for line in out.splitlines() if line.startswith("softae explore")]
+    # beta only multiplies the method that uses it: 3 methods x 3 seeds + softae x 3 seeds x 2 betas
+    assert len(lines) == 3 * 3 + 3 * 2 and len(set(lines)) == len(lines)
+    assert "15 runs" in out and "9 duplicates dropped" in out
+    assert "--method=softae --seed=0 --beta=1.0" in out
+    assert not any("--beta" in line for line in lines if "--method=softae" not in line)
 
 
 def test_softae_covers_more_than_random(tmp_path):
@@ -199,7 +203,7 @@ def test_evaluate_with_planner_overrides(tmp_path, capsys):
 
 
 def test_reference_returns_are_seeded_and_tell_random_from_no_control():
-    from torchrl_softae.evaluate import reference_returns
+    from torchrl_softae.pipeline.evaluate import reference_returns
 
     rand = reference_returns("Pendulum-v1", "swingup", "random", episodes=2, seed=3)
     assert rand == reference_returns("Pendulum-v1", "swingup", "random", episodes=2, seed=3)

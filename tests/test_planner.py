@@ -8,7 +8,8 @@ from torchrl.modules import CEMPlanner
 
 from _envs import PointMassEnv
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
-from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner, colored_noise
+from torchrl_softae.envs.common import rollout_returns
+from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner, MPPIPlanner, colored_noise
 
 
 def test_colored_noise_unit_variance_and_correlation():
@@ -126,8 +127,8 @@ def test_bf16_ranking_matches_fp32():
     obs = TensorDict({"observation": torch.rand(1, 3) * 2 - 1}, [1])
     acts = torch.rand(1, 300, 5, 5) * 2 - 1
     r32 = fp32.evaluate(obs, acts)
-    with bf16._planning_ctx():
-        r16 = bf16.evaluate(obs, acts)
+    r16 = bf16.evaluate(obs, acts)
+    assert tenv.base_env.world_model.planning_dtype is None  # the env restored its own model
     assert not torch.equal(r32, r16)  # the reduced-precision path really ran
     rho = spearmanr(r32[0].numpy(), r16[0].numpy()).statistic
     assert rho >= 0.95, rho
@@ -173,3 +174,54 @@ def test_bad_observation_rejected():
         planner(TensorDict({"observation": torch.tensor([0.0, float("nan")])}, []))
     with pytest.raises(ValueError, match=r"expected \(\.\.\., 2\)"):
         planner(TensorDict({"observation": torch.zeros(3)}, []))
+
+
+@pytest.mark.parametrize("mode", ["mean", "optimistic"])
+def test_model_env_contract_matches_torchrl_generic_rollout(mode):
+    """The model env's evaluate_action_sequences scores sequences exactly as TorchRL's generic
+    env.rollout over the same transformed env does (deterministic modes)."""
+    tenv = TransformedEnv(_model_env(mode), Compose(HallucinatedControl(), UncertaintyReward())) if mode == "optimistic" \
+        else TransformedEnv(_model_env(mode), UncertaintyReward())
+    obs = TensorDict({"observation": torch.randn(2, 3)}, [2])
+    d = tenv.action_spec.shape[-1]
+    acts = torch.rand(2, 6, 4, d) * 2 - 1
+    contract = tenv.base_env.evaluate_action_sequences(obs, acts, num_particles=1, env=tenv)
+    generic = rollout_returns(tenv, obs, acts, num_particles=1)
+    torch.testing.assert_close(contract, generic)
+
+
+def test_a_second_planner_plans_through_the_same_contract():
+    """MPPI uses the model env's evaluator (no getattr probing) and the generic path elsewhere."""
+    tenv = TransformedEnv(_model_env("optimistic"), Compose(HallucinatedControl(), UncertaintyReward()))
+    mppi = MPPIPlanner(tenv, planning_horizon=3, num_candidates=32, num_particles=10, seed=0)
+    icem = ICEMPlanner(tenv, planning_horizon=3, num_candidates=32, top_k=4, num_particles=10, seed=0)
+    assert mppi.evaluator is tenv.base_env and icem.evaluator is tenv.base_env
+    assert mppi.effective_particles == icem.effective_particles == 1  # the env says: deterministic
+    obs = TensorDict({"observation": torch.randn(2, 3)}, [2])
+    acts = torch.rand(2, 5, 3, 5) * 2 - 1
+    torch.testing.assert_close(mppi.evaluate(obs, acts), icem.evaluate(obs, acts))
+    out = mppi(TensorDict({"observation": torch.randn(4, 3)}, [4]))["action"]
+    assert out.shape == (4, 5) and out.abs().max() <= 1
+    # a generic env (no contract): MPPI finds the analytic optimum of the point mass
+    target = torch.tensor([0.6, -0.3])
+    planner = MPPIPlanner(PointMassEnv(2, target), planning_horizon=2, optim_steps=10, num_candidates=256, noise_std=0.2,
+                          temperature=0.01, num_particles=1, seed=0)
+    assert planner.evaluator is None
+    a = planner(TensorDict({"observation": torch.zeros(2)}, []))["action"]
+    assert (a - target).abs().max() < 0.1, a
+
+
+def test_torchrl_mppi_plans_over_the_model_env():
+    """TorchRL's own MPPIPlanner runs over the same model env stack (through env.rollout)."""
+    from torchrl.envs.utils import RandomPolicy  # noqa: F401
+    from torchrl.modules import MPPIPlanner as TorchRLMPPI
+    from torchrl.modules import ValueOperator
+    from torchrl.objectives.value import TDLambdaEstimator
+
+    tenv = TransformedEnv(_model_env("mean"), UncertaintyReward())
+    value = ValueOperator(torch.nn.Linear(3, 1), in_keys=["observation"])
+    planner = TorchRLMPPI(tenv, TDLambdaEstimator(gamma=0.99, lmbda=0.95, value_network=value),
+                          temperature=1.0, planning_horizon=3, optim_steps=2, num_candidates=16, top_k=4)
+    with torch.no_grad():
+        a = planner(TensorDict({"observation": torch.randn(3)}, []))["action"]
+    assert a.shape == (2,) and a.abs().max() <= 1

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import torchrl_softae  # noqa: F401  (registers the gymnasium ids)
-from torchrl_softae.envs.soft_arm import (
+from torchrl_softae.envs.robots.soft_arm import (
     ARM_TARGET_ACTIONS,
     ARM_TARGETS,
     RampController,
@@ -146,8 +146,8 @@ def test_torchrl_gymenv_specs_and_gymnasium_checker():
 
 
 def test_pipeline_explores_the_arm(tmp_path):
-    from torchrl_softae.cli import main
-    from torchrl_softae.runs import RunDir
+    from torchrl_softae.pipeline.cli import main
+    from torchrl_softae.pipeline.runs import RunDir
 
     tiny = ["--set", "heldout_size=120", "--set", "model.num_cells=32", "--set", "model.depth=2",
             "--set", "planner.num_candidates=10", "--set", "planner.top_k=2", "--set", "planner.optim_steps=1",

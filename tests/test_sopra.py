@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from tensordict import TensorDict
 
-from torchrl_softae.envs.sopra import (
+from torchrl_softae.envs.robots.sopra import (
     SOPRA_TARGETS,
     ModbusMap,
     ModbusValveArray,
@@ -25,7 +25,7 @@ from torchrl_softae.envs.sopra import (
     SoPrAEnv,
     sopra_layout,
 )
-from torchrl_softae.envs.sopra.env import SOPRA_TARGET_PRESSURES
+from torchrl_softae.envs.robots.sopra.env import SOPRA_TARGET_PRESSURES
 
 
 def _free_port():
@@ -359,8 +359,8 @@ def test_lost_body_vents_and_ends_episode_and_overruns_are_reported():
 
 
 def test_pipeline_explores_the_twin(tmp_path):
-    from torchrl_softae.cli import main
-    from torchrl_softae.runs import RunDir
+    from torchrl_softae.pipeline.cli import main
+    from torchrl_softae.pipeline.runs import RunDir
 
     argv = ["explore", "--env", "SoPrA-v0", "--method", "softae", "--episodes", "1", "--episode-length", "10",
             "--run-dir", str(tmp_path), "--wandb", "disabled", "--quiet", "--set", "heldout_size=100",

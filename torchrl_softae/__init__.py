@@ -1,26 +1,19 @@
 """torchrl_softae: active exploration of soft-robot dynamics (SoftAE) as TorchRL components.
 
-Importing the package registers its gymnasium ids (cheap: simulators load on first ``make``):
-``SoftArm-v0`` (58D), ``SoftArm136-v0`` (136D), ``SoftFish-v0`` (15D), ``SoftFishTarget-v0`` (18D),
-``MSKLeg-v0`` (10D), ``SoPrA-v0`` (32D, the simulated twin).
+The library -- :mod:`~torchrl_softae.modules` (ensemble world model, planners),
+:mod:`~torchrl_softae.objectives` (loss, training schedule), :mod:`~torchrl_softae.envs` (the
+model env, its transforms, and the robots under ``envs.robots``) and :mod:`~torchrl_softae.tasks`
+-- never imports :mod:`~torchrl_softae.pipeline` (CLI, configs, runs, sweeps, plots).
+
+Importing the package registers the gymnasium ids of ``torchrl_softae.envs.robots.ENVS`` (cheap:
+simulators load on first ``make``): ``SoftArm-v0`` (58D), ``SoftArm136-v0`` (136D),
+``SoftFish-v0`` (15D), ``SoftFishTarget-v0`` (18D), ``MSKLeg-v0`` (10D), ``SoPrA-v0`` (32D, the
+simulated twin), ``Pendulum-hanging``.
 """
 __version__ = "0.1.0"
 
+from torchrl_softae import _moved
+from torchrl_softae.envs.robots import register_gym_ids as _register_gym_ids
 
-def _register_gym_ids() -> None:
-    import gymnasium as gym
-
-    ids = {
-        "SoftArm-v0": ("torchrl_softae.envs.soft_arm:SoftArmEnv", {"observed_points": 5}, 200),
-        "SoftArm136-v0": ("torchrl_softae.envs.soft_arm:SoftArmEnv", {"observed_points": 11}, 200),
-        "SoftFish-v0": ("torchrl_softae.envs.fish:SoftFishEnv", {"with_target": False}, 200),
-        "SoftFishTarget-v0": ("torchrl_softae.envs.fish:SoftFishEnv", {"with_target": True}, 200),
-        "MSKLeg-v0": ("torchrl_softae.envs.msk_leg:MSKLegEnv", {}, 500),
-        "SoPrA-v0": ("torchrl_softae.envs.sopra.env:SoPrAGymEnv", {}, 200),
-    }
-    for env_id, (entry_point, kwargs, steps) in ids.items():
-        if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=entry_point, kwargs=kwargs, max_episode_steps=steps)
-
-
+_moved.install()
 _register_gym_ids()

@@ -1,19 +1,25 @@
 """A batched TorchRL environment that propagates states through the learned ensemble."""
 from __future__ import annotations
 
+import contextlib
+import math
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import ModelBasedEnvBase
+from torchrl.envs import EnvBase, ModelBasedEnvBase
 
+from torchrl_softae.envs.common import ActionSequenceEvaluator
 from torchrl_softae.modules.ensemble import EnsembleWorldModel, ensemble_std
+from torchrl_softae.modules.precision import resolve_planning_dtype
 
 __all__ = ["EnsembleModelEnv", "PROPAGATION_MODES"]
 
+#: propagation modes of :class:`EnsembleModelEnv` (the one list; the CLI and configs read it)
 PROPAGATION_MODES = ("mean", "sample", "optimistic")
 
 
-class EnsembleModelEnv(ModelBasedEnvBase):
+class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     """Imagined rollouts through an :class:`EnsembleWorldModel`.
 
     Propagation modes (paper, "Active Exploration of State-Space Models"):
@@ -31,14 +37,25 @@ class EnsembleModelEnv(ModelBasedEnvBase):
     reward of its own: ``reward`` is zero until a transform (``UncertaintyReward`` or a task reward)
     sets it. The env never terminates.
 
+    Planners score candidates through :meth:`evaluate_action_sequences` (the
+    :class:`~torchrl_softae.envs.common.ActionSequenceEvaluator` contract).
+
     Args:
         world_model (EnsembleWorldModel): the trained ensemble.
         action_spec (Bounded, optional): the real env's action spec; default ``[-1, 1]^{d_a}``.
-        mode (str): one of ``"mean"``, ``"sample"``, ``"optimistic"``.
+        mode (str): one of :data:`PROPAGATION_MODES`.
         aleatoric_noise (bool, optional): add the aleatoric noise [w_t]; default ``True`` for
             ``"sample"`` and ``False`` otherwise (deterministic propagation lets planners skip
             identical particles).
         initial_states (Tensor, optional): ``(N, d_s)`` states that :meth:`reset` draws from.
+        device: where the env and the model live; default the model's device (the model is
+            moved there, as TorchRL's ``ModelBasedEnvBase`` does).
+
+    Examples:
+        >>> env = EnsembleModelEnv(EnsembleWorldModel(3, 1), mode="mean")
+        >>> td = env.reset(TensorDict({"observation": torch.zeros(4, 3)}, [4]))
+        >>> env.step(td.set("action", torch.zeros(4, 1)))["next", "epistemic_std"].shape
+        torch.Size([4, 3])
     """
 
     member_key = "member_index"
@@ -50,13 +67,15 @@ class EnsembleModelEnv(ModelBasedEnvBase):
         mode: str = "mean",
         aleatoric_noise: bool | None = None,
         initial_states: torch.Tensor | None = None,
-        device="cpu",
+        device=None,
         batch_size=None,
     ):
         if not isinstance(world_model, EnsembleWorldModel):
             raise TypeError(f"world_model must be an EnsembleWorldModel, got {type(world_model).__name__}")
         if mode not in PROPAGATION_MODES:
             raise ValueError(f"mode={mode!r}, expected one of {PROPAGATION_MODES}")
+        if device is None:
+            device = world_model.input_normalizer.loc.device
         super().__init__(world_model, device=device, batch_size=batch_size)
         d_s, d_a = world_model.observation_dim, world_model.action_dim
         self.mode = mode
@@ -67,21 +86,27 @@ class EnsembleModelEnv(ModelBasedEnvBase):
             action_spec = Bounded(-1.0, 1.0, (d_a,))
         if action_spec.shape[-1:] != (d_a,):
             raise ValueError(f"action_spec has shape {tuple(action_spec.shape)}, expected ({d_a},) to match the world model")
+        dev = self.device
         self.observation_spec = Composite(
-            observation=Unbounded((d_s,)), epistemic_std=Unbounded((d_s,)), shape=self.batch_size
+            observation=Unbounded((d_s,), device=dev), epistemic_std=Unbounded((d_s,), device=dev),
+            shape=self.batch_size, device=dev,
         )
-        actions = {"action": action_spec.clone()}
+        actions = {"action": action_spec.clone().to(dev)}
         if mode == "optimistic":
-            actions["eta"] = Unbounded((d_s,))
-        self.full_action_spec = Composite(actions, shape=self.batch_size)
+            actions["eta"] = Unbounded((d_s,), device=dev)
+        self.full_action_spec = Composite(actions, shape=self.batch_size, device=dev)
         if mode == "sample":
             self.state_spec = Composite(
-                {self.member_key: Categorical(world_model.ensemble_size, (), dtype=torch.int64)},
-                shape=self.batch_size,
+                {self.member_key: Categorical(world_model.ensemble_size, (), dtype=torch.int64, device=dev)},
+                shape=self.batch_size, device=dev,
             )
-        self.reward_spec = Unbounded((1,))
-        self._generator = torch.Generator().manual_seed(0)
-        self.initial_states = None if initial_states is None else initial_states.detach().reshape(-1, d_s).clone()
+        self.reward_spec = Unbounded((1,), device=dev)
+        self._generator = torch.Generator(device=dev).manual_seed(0)
+        self.initial_states = (None if initial_states is None
+                               else initial_states.detach().reshape(-1, d_s).to(dev).clone())
+        self._check_actions = True
+        self._propagate = {"mean": self._propagate_mean, "sample": self._propagate_sample,
+                           "optimistic": self._propagate_optimistic}[mode]
 
     @property
     def deterministic(self) -> bool:
@@ -91,8 +116,8 @@ class EnsembleModelEnv(ModelBasedEnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self._generator.manual_seed(int(seed) if seed is not None else 0)
 
-    def _randn(self, shape, like: torch.Tensor) -> torch.Tensor:
-        return torch.randn(shape, generator=self._generator, dtype=like.dtype).to(like.device)
+    def _randn(self, shape, like: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        return torch.randn(shape, generator=generator or self._generator, dtype=like.dtype, device=like.device)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         d_s = self.world_model.observation_dim
@@ -101,7 +126,7 @@ class EnsembleModelEnv(ModelBasedEnvBase):
             obs = tensordict.get("observation")
             shape = obs.shape[:-1]
         elif self.initial_states is not None:
-            idx = torch.randint(self.initial_states.shape[0], shape, generator=self._generator)
+            idx = torch.randint(self.initial_states.shape[0], shape, generator=self._generator, device=self.device)
             obs = self.initial_states[idx]
         else:  # states distributed like the data the model was fit on
             norm = self.world_model.input_normalizer
@@ -110,9 +135,11 @@ class EnsembleModelEnv(ModelBasedEnvBase):
             {"observation": obs, "epistemic_std": torch.zeros_like(obs)}, batch_size=shape, device=self.device
         )
         if self.mode == "sample":
-            out.set(self.member_key, torch.randint(self.world_model.ensemble_size, shape, generator=self._generator))
+            out.set(self.member_key, torch.randint(self.world_model.ensemble_size, shape, generator=self._generator,
+                                                   device=self.device))
         return out
 
+    # ------------------------------------------------------------------ propagation
     def propagate(
         self,
         observation: torch.Tensor,
@@ -121,39 +148,41 @@ class EnsembleModelEnv(ModelBasedEnvBase):
         member_index: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """One model step on plain tensors: returns ``(s', sigma)``, both ``(*B, d_s)``."""
-        model = self.world_model
-        if self.mode == "sample" and member_index is None:
-            member_index = torch.randint(model.ensemble_size, observation.shape[:-1], generator=self._generator)
-        members, ale = model.predict_members(
-            observation, action, with_aleatoric=self.aleatoric_noise,
-            member_index=member_index if self.mode == "sample" else None,
-        )
+        return self._propagate(observation, action, eta, member_index)
+
+    def _mean_and_sigma(self, observation, action, member_index=None):
+        members, ale = self.world_model.predict_members(
+            observation, action, with_aleatoric=self.aleatoric_noise, member_index=member_index)
         mu = members.mean(0)
-        sigma = ensemble_std(members, mu)
-        if self.mode == "mean":
-            nxt = mu
-            noise_std = ale.square().mean(0).sqrt() if ale is not None else None
-        elif self.mode == "optimistic":
-            if eta is None:
-                raise KeyError("mode='optimistic' needs the hallucinated control 'eta' in the tensordict")
-            if eta.shape != mu.shape:
-                raise ValueError(f"'eta' has shape {tuple(eta.shape)}, expected {tuple(mu.shape)}")
-            nxt = torch.addcmul(mu, sigma, eta)
-            noise_std = ale.square().mean(0).sqrt() if ale is not None else None
-        else:  # trajectory sampling: ``ale`` is already the assigned member's
-            idx = member_index.reshape(1, *mu.shape[:-1], 1).expand(1, *mu.shape)
-            nxt = members.gather(0, idx).squeeze(0)
-            noise_std = ale
-        if noise_std is not None:
-            nxt = nxt + noise_std * self._randn(nxt.shape, nxt)
-        return nxt, sigma
+        return members, mu, ensemble_std(members, mu), ale
 
-    #: validate every action against the spec (a planner that clips its samples may switch it off)
-    check_actions: bool = True
+    def _with_noise(self, nxt, noise_std):
+        return nxt if noise_std is None else nxt + noise_std * self._randn(nxt.shape, nxt)
 
+    def _propagate_mean(self, observation, action, eta, member_index):
+        _, mu, sigma, ale = self._mean_and_sigma(observation, action)
+        return self._with_noise(mu, None if ale is None else ale.square().mean(0).sqrt()), sigma
+
+    def _propagate_optimistic(self, observation, action, eta, member_index):
+        _, mu, sigma, ale = self._mean_and_sigma(observation, action)
+        if eta is None:
+            raise KeyError("mode='optimistic' needs the hallucinated control 'eta' in the tensordict")
+        if eta.shape != mu.shape:
+            raise ValueError(f"'eta' has shape {tuple(eta.shape)}, expected {tuple(mu.shape)}")
+        nxt = torch.addcmul(mu, sigma, eta)
+        return self._with_noise(nxt, None if ale is None else ale.square().mean(0).sqrt()), sigma
+
+    def _propagate_sample(self, observation, action, eta, member_index):
+        if member_index is None:
+            member_index = torch.randint(self.world_model.ensemble_size, observation.shape[:-1],
+                                         generator=self._generator, device=observation.device)
+        members, mu, sigma, ale = self._mean_and_sigma(observation, action, member_index)
+        idx = member_index.reshape(1, *mu.shape[:-1], 1).expand(1, *mu.shape)
+        # trajectory sampling: ``ale`` is already the assigned member's
+        return self._with_noise(members.gather(0, idx).squeeze(0), ale), sigma
+
+    # ------------------------------------------------------------------ stepping
     def _check_action(self, action: torch.Tensor) -> None:
-        if not self.check_actions:
-            return
         d_a = self.world_model.action_dim
         if action.shape[-1:] != (d_a,):
             raise ValueError(f"EnsembleModelEnv: 'action' has shape {tuple(action.shape)}, expected (..., {d_a})")
@@ -171,20 +200,86 @@ class EnsembleModelEnv(ModelBasedEnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs = tensordict.get("observation")
         action = tensordict.get("action")
-        self._check_action(action)
+        if self._check_actions:
+            self._check_action(action)
         member = tensordict.get(self.member_key, None) if self.mode == "sample" else None
         nxt, sigma = self.propagate(obs, action, tensordict.get("eta", None), member)
         batch = tensordict.batch_size
+        flag = torch.zeros(*batch, 1, dtype=torch.bool, device=nxt.device)
         out = TensorDict(
-            {
-                "observation": nxt,
-                "epistemic_std": sigma,
-                "reward": torch.zeros(*batch, 1, dtype=nxt.dtype, device=nxt.device),
-                "done": torch.zeros(*batch, 1, dtype=torch.bool, device=nxt.device),
-                "terminated": torch.zeros(*batch, 1, dtype=torch.bool, device=nxt.device),
-            },
-            batch_size=batch,
+            {"observation": nxt, "epistemic_std": sigma,
+             "reward": torch.zeros(*batch, 1, dtype=nxt.dtype, device=nxt.device), "done": flag, "terminated": flag},
+            batch_size=batch, device=self.device,
         )
         if member is not None:
             out.set(self.member_key, member)
         return out
+
+    # ------------------------------------------------------------------ the planner contract
+    @property
+    def state_keys(self) -> list:
+        return ["observation"]
+
+    def particles_needed(self, requested: int) -> int:
+        return 1 if self.deterministic else requested
+
+    @contextlib.contextmanager
+    def _planning(self, precision: str):
+        """The model's hidden layers in ``precision``; per-step action checks off (the sequences
+        were checked once, as a whole)."""
+        model = self.world_model
+        prev_dtype, prev_check = model.planning_dtype, self._check_actions
+        model.planning_dtype = resolve_planning_dtype(precision, self.device)
+        self._check_actions = False
+        try:
+            yield
+        finally:
+            model.planning_dtype, self._check_actions = prev_dtype, prev_check
+
+    @torch.no_grad()
+    def evaluate_action_sequences(
+        self,
+        initial_state: TensorDictBase,
+        action_sequences: torch.Tensor,
+        *,
+        num_particles: int,
+        env: EnvBase | None = None,
+        precision: str = "fp32",
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Returns of ``(B, N, H, d)`` action sequences from ``(B,)`` initial states, ``(B, N)``.
+
+        ``env`` is this env or a ``TransformedEnv`` over it (its transforms split the action,
+        e.g. :class:`~torchrl_softae.envs.transforms.HallucinatedControl`, and set the reward,
+        e.g. :class:`~torchrl_softae.envs.transforms.UncertaintyReward`). With ``num_particles``
+        > 1 in ``"sample"`` mode every particle keeps one member for the whole horizon (TS-inf),
+        members spread evenly over a candidate's particles from a random offset.
+        """
+        env = self if env is None else env
+        B, N, H, d = action_sequences.shape
+        P = num_particles
+        spec = env.full_action_spec[env.action_key]
+        if isinstance(spec, Bounded):
+            low, high = spec.space.low, spec.space.high
+            if bool(((action_sequences < low - 1e-6) | (action_sequences > high + 1e-6)).any()):
+                raise ValueError(f"EnsembleModelEnv.evaluate_action_sequences: action sequences leave the action "
+                                 f"spec [{float(low.min()):.4g}, {float(high.max()):.4g}]")
+        td = initial_state.select(*self.state_keys).reshape(B, 1, 1).expand(B, N, P).clone()
+        if self.mode == "sample" and P > 1:
+            L = self.world_model.ensemble_size
+            offset = torch.randint(L, (B, N, 1), generator=generator, device=action_sequences.device)
+            td.set(self.member_key, (torch.arange(P, device=action_sequences.device) + offset) % L)
+        acts = action_sequences.unsqueeze(2).expand(B, N, P, H, d)
+        ret = torch.zeros(B, N, P, 1, device=action_sequences.device)
+        with self._planning(precision):
+            for h in range(H):
+                td.set(env.action_key, acts[..., h, :])
+                nxt = env.step(td).get("next")
+                ret += nxt.get("reward").reshape(B, N, P, -1)[..., :1].float()
+                # carry the next state and the particle's member (TS-inf) to the next step
+                carried = nxt.select(*self.state_keys)
+                if self.member_key in td.keys():
+                    carried.set(self.member_key, td.get(self.member_key))
+                td = carried
+        ret = ret.squeeze(-1).mean(-1)
+        return torch.where(torch.isfinite(ret), ret, torch.full_like(ret, -math.inf))

@@ -1,6 +1,6 @@
 """Learned models and planners."""
 from torchrl_softae.modules.ensemble import EnsembleLinear, EnsembleWorldModel, Normalizer, ensemble_std
-from torchrl_softae.modules.planners import ICEMPlanner, colored_noise
+from torchrl_softae.modules.planners import ICEMPlanner, MPPIPlanner, SequencePlannerBase, colored_noise
 from torchrl_softae.modules.precision import fast_bf16_available, resolve_planning_dtype
 
 __all__ = [
@@ -9,6 +9,8 @@ __all__ = [
     "Normalizer",
     "ensemble_std",
     "ICEMPlanner",
+    "MPPIPlanner",
+    "SequencePlannerBase",
     "colored_noise",
     "fast_bf16_available",
     "resolve_planning_dtype",

@@ -48,13 +48,14 @@ class EnsembleLinear(nn.Module):
     Shapes: input ``(L, N, in)`` (or ``(N, in)``, shared by all members), output ``(L, N, out)``.
     """
 
-    def __init__(self, ensemble_size: int, in_features: int, out_features: int):
+    def __init__(self, ensemble_size: int, in_features: int, out_features: int, device=None, dtype=None):
         super().__init__()
         self.ensemble_size = ensemble_size
         self.in_features = in_features
         self.out_features = out_features
-        self.weight = nn.Parameter(torch.empty(ensemble_size, in_features, out_features))
-        self.bias = nn.Parameter(torch.empty(ensemble_size, 1, out_features))
+        factory = {"device": device, "dtype": dtype}
+        self.weight = nn.Parameter(torch.empty(ensemble_size, in_features, out_features, **factory))
+        self.bias = nn.Parameter(torch.empty(ensemble_size, 1, out_features, **factory))
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -76,16 +77,16 @@ class EnsembleLinear(nn.Module):
 class Normalizer(nn.Module):
     """Per-dimension affine normalizer ``(x - loc) / scale`` fitted from data; saved in state_dict."""
 
-    def __init__(self, size: int, eps: float = 1e-6):
+    def __init__(self, size: int, eps: float = 1e-6, device=None):
         super().__init__()
         self.eps = eps
-        self.register_buffer("loc", torch.zeros(size))
-        self.register_buffer("scale", torch.ones(size))
-        self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
+        self.register_buffer("loc", torch.zeros(size, device=device))
+        self.register_buffer("scale", torch.ones(size, device=device))
+        self.register_buffer("fitted", torch.zeros((), dtype=torch.bool, device=device))
 
     @torch.no_grad()
     def fit(self, data: torch.Tensor) -> None:
-        data = data.reshape(-1, data.shape[-1]).to(self.loc.dtype)
+        data = data.reshape(-1, data.shape[-1]).to(self.loc)
         if data.shape[0] < 2:
             raise ValueError(f"Normalizer.fit needs at least 2 rows, got data of shape {tuple(data.shape)}")
         if not torch.isfinite(data).all():
@@ -109,7 +110,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
     Args:
         observation_dim (int): d_s.
         action_dim (int): d_a.
-        ensemble_size (int): L, number of members. Default 5 (paper, Table S7).
+        ensemble_size (int): L, number of members. Default 5 (paper, Table S6).
         num_cells (int): hidden width. Default 256.
         depth (int): number of hidden layers. Default 4.
         activation_class: hidden activation. Default ``nn.SiLU``.
@@ -120,6 +121,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
         in_keys: keys of the state ``s`` (d_s) and action ``a`` (d_a). Default ``("observation", "action")``.
         out_keys: keys of the next-state mean [mu], epistemic std [sigma] and aleatoric std.
             Default ``("loc", "epistemic_std", "aleatoric_std")``.
+        device: where parameters and normalizers are created (TorchRL convention; ``.to()`` later
+            works too). The CPU-only inference path (oneDNN grouped convolutions) is chosen per
+            input device.
 
     Shapes: ``observation`` ``(*B, d_s)``, ``action`` ``(*B, d_a)``; all outputs ``(*B, d_s)``.
 
@@ -143,6 +147,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         max_logvar: float = 0.5,
         in_keys: Sequence = ("observation", "action"),
         out_keys: Sequence = ("loc", "epistemic_std", "aleatoric_std"),
+        device=None,
     ):
         for name, value, low in (
             ("observation_dim", observation_dim, 1),
@@ -162,22 +167,17 @@ class EnsembleWorldModel(TensorDictModuleBase):
         self.action_dim = action_dim
         self.ensemble_size = ensemble_size
         self.probabilistic = probabilistic
-        self.hparams = dict(
-            observation_dim=observation_dim, action_dim=action_dim, ensemble_size=ensemble_size,
-            num_cells=num_cells, depth=depth, probabilistic=probabilistic,
-            min_logvar=min_logvar, max_logvar=max_logvar,
-        )
         sizes = [observation_dim + action_dim] + [num_cells] * depth
         out = 2 * observation_dim if probabilistic else observation_dim
         self.layers = nn.ModuleList(
-            [EnsembleLinear(ensemble_size, i, o) for i, o in zip(sizes[:-1], sizes[1:])]
-            + [EnsembleLinear(ensemble_size, sizes[-1], out)]
+            [EnsembleLinear(ensemble_size, i, o, device=device) for i, o in zip(sizes[:-1], sizes[1:])]
+            + [EnsembleLinear(ensemble_size, sizes[-1], out, device=device)]
         )
         self.activation = activation_class()
-        self.min_logvar = nn.Parameter(torch.full((1, observation_dim), float(min_logvar)))
-        self.max_logvar = nn.Parameter(torch.full((1, observation_dim), float(max_logvar)))
-        self.input_normalizer = Normalizer(observation_dim + action_dim)
-        self.output_normalizer = Normalizer(observation_dim)
+        self.min_logvar = nn.Parameter(torch.full((1, observation_dim), float(min_logvar), device=device))
+        self.max_logvar = nn.Parameter(torch.full((1, observation_dim), float(max_logvar), device=device))
+        self.input_normalizer = Normalizer(observation_dim + action_dim, device=device)
+        self.output_normalizer = Normalizer(observation_dim, device=device)
         # Reduced-precision planning: hidden 256x256 layers in this dtype (None = fp32).
         self.planning_dtype: torch.dtype | None = None
         self._inference_cache: dict = {}

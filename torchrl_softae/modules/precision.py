@@ -30,16 +30,22 @@ def fast_bf16_available() -> bool:
     return platform.machine() in ("arm64", "aarch64") and "bf16" in flags
 
 
-def resolve_planning_dtype(precision: str) -> torch.dtype | None:
-    """Map ``"fp32" | "bf16" | "auto"`` to the hidden-layer dtype (``None`` = fp32).
+def resolve_planning_dtype(precision: str, device=None) -> torch.dtype | None:
+    """Map ``"fp32" | "bf16" | "auto"`` to the hidden-layer dtype (``None`` = fp32) on ``device``.
 
-    ``"auto"`` picks bf16 only where the CPU has native bf16 units; ``"bf16"`` forces it
-    (correct everywhere, but slower than fp32 without hardware support).
+    ``"auto"`` picks bf16 only where the device has native bf16 units (a CPU with AMX-BF16 or
+    AVX512-BF16, a CUDA device that supports bf16); ``"bf16"`` forces it (correct everywhere,
+    but slower than fp32 without hardware support).
     """
     if precision == "fp32":
         return None
     if precision == "bf16":
         return torch.bfloat16
     if precision == "auto":
-        return torch.bfloat16 if fast_bf16_available() else None
+        device = torch.device(device if device is not None else "cpu")
+        if device.type == "cuda":
+            return torch.bfloat16 if torch.cuda.is_bf16_supported() else None
+        if device.type == "cpu":
+            return torch.bfloat16 if fast_bf16_available() else None
+        return None
     raise ValueError(f"precision={precision!r}, expected one of 'fp32', 'bf16', 'auto'")

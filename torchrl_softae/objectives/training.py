@@ -1,4 +1,4 @@
-"""The paper's model-training schedule (Table S7): after every episode, retrain on all data."""
+"""The paper's model-training schedule (Table S6): after every episode, retrain on all data."""
 from __future__ import annotations
 
 import math
@@ -39,7 +39,7 @@ def transitions_from(data: ReplayBuffer | TensorDictBase, keys) -> TensorDictBas
     else:
         td = data
     td = td.reshape(-1).select(*keys)
-    ok = torch.ones(td.shape[0], dtype=torch.bool)
+    ok = torch.ones(td.shape[0], dtype=torch.bool, device=td.device)
     for key in keys:
         x = td.get(key)
         ok &= torch.isfinite(x.reshape(x.shape[0], -1)).all(-1)
@@ -98,15 +98,19 @@ class EnsembleTrainer:
         self.optimizer.load_state_dict(state["optimizer"])
 
     def fit(self, data: ReplayBuffer | TensorDictBase, generator: torch.Generator | None = None) -> TrainingReport:
-        """Refit normalizers and train on every transition in ``data``."""
+        """Refit normalizers and train on every transition in ``data``, on the model's device.
+
+        ``generator`` (a CPU generator) draws the split and minibatch order, so a seeded fit gives
+        the same minibatches on every device."""
         k = self.loss_module.tensor_keys
         keys = [k.observation, k.action, k.next_observation]
-        td = transitions_from(data, keys)
+        device = self.model.input_normalizer.loc.device
+        td = transitions_from(data, keys).to(device)  # a replay buffer's storage may live elsewhere
         n = td.shape[0]
         if n < 2:
             raise ValueError(f"EnsembleTrainer.fit needs at least 2 finite transitions, got {n}")
         g = generator if generator is not None else torch.Generator().manual_seed(0)
-        perm = torch.randperm(n, generator=g)
+        perm = torch.randperm(n, generator=g).to(device)
         n_val = int(round(self.val_fraction * n)) if n >= 10 else 0
         val, train = td[perm[:n_val]], td[perm[n_val:]]
         n_train = train.shape[0]
@@ -133,7 +137,7 @@ class EnsembleTrainer:
             for j in range(steps_per_epoch):
                 if step >= total:
                     break
-                idx = order[:, j * bs : (j + 1) * bs]
+                idx = order[:, j * bs : (j + 1) * bs].to(device)
                 batch = train[idx.reshape(-1)].reshape(L, idx.shape[1])
                 loss = self.loss_module(batch)["loss_model"]
                 self.optimizer.zero_grad(set_to_none=True)

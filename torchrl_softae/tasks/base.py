@@ -16,7 +16,7 @@ RewardFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 @dataclass(frozen=True)
 class Task:
-    """A downstream task [r_t in Table S6].
+    """A downstream task [r_t in Table S5].
 
     Args:
         name: short id used on the command line (``softae evaluate --task NAME``).
@@ -26,6 +26,9 @@ class Task:
         metrics_fn: optional ``trajectory tensordict -> {name: float}`` success metrics
             (e.g. final tip error in mm), computed on real rollouts.
         description: one line for ``--help`` and reports.
+        params: task parameters worth recording (e.g. the target).
+        success_metric: the key of ``metrics_fn``'s output that says whether the task was solved
+            (shown next to the return in reports), if any.
     """
 
     name: str
@@ -34,6 +37,7 @@ class Task:
     metrics_fn: Callable[[TensorDictBase], dict] | None = None
     description: str = ""
     params: dict = field(default_factory=dict)
+    success_metric: str | None = None
 
     def reward(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor) -> torch.Tensor:
         r = self.reward_fn(observation, action, next_observation)

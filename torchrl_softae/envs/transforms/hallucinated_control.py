@@ -7,7 +7,10 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded, Composite
 from torchrl.envs.transforms import Transform
 
-__all__ = ["HallucinatedControl", "RealActionPolicy"]
+__all__ = ["HallucinatedControl", "RealActionPolicy", "DEFAULT_BETA"]
+
+#: the confidence-set width [beta] of the paper (Table S6, every robot)
+DEFAULT_BETA = 2.0
 
 
 class HallucinatedControl(Transform):
@@ -22,11 +25,17 @@ class HallucinatedControl(Transform):
     :meth:`policy_for_real_env` to act on the real system.
 
     Args:
-        beta (float): confidence-set width [beta]. Default 2.0 (paper, Table S7).
+        beta (float): confidence-set width [beta]. Default :data:`DEFAULT_BETA` = 2.0 (paper, Table S6).
         action_key, eta_key: the model env's action entries.
+
+    Examples:
+        >>> env = TransformedEnv(EnsembleModelEnv(EnsembleWorldModel(3, 1), mode="optimistic"),
+        ...                      Compose(HallucinatedControl(beta=2.0), UncertaintyReward()))
+        >>> env.action_spec.shape  # [a (1), eta (3)]
+        torch.Size([4])
     """
 
-    def __init__(self, beta: float = 2.0, action_key: str = "action", eta_key: str = "eta"):
+    def __init__(self, beta: float = DEFAULT_BETA, action_key: str = "action", eta_key: str = "eta"):
         if not isinstance(beta, (int, float)) or not beta >= 0 or beta != beta or beta == float("inf"):
             raise ValueError(f"HallucinatedControl: beta={beta!r}, expected a finite number >= 0")
         super().__init__(in_keys_inv=[action_key], out_keys_inv=[action_key, eta_key])

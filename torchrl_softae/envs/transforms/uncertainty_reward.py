@@ -22,6 +22,12 @@ class UncertaintyReward(Transform):
             in place with :meth:`set_scale` after each retraining.
         in_key: where sigma is read. Default ``"epistemic_std"``.
         out_key: where the reward is written. Default ``"reward"``.
+
+    Examples:
+        >>> env = TransformedEnv(EnsembleModelEnv(EnsembleWorldModel(3, 1)), UncertaintyReward())
+        >>> td = env.reset(TensorDict({"observation": torch.zeros(2, 3)}, [2]))
+        >>> env.step(td.set("action", torch.zeros(2, 1)))["next", "reward"].shape  # ||sigma||
+        torch.Size([2, 1])
     """
 
     def __init__(self, ord: float = 2.0, scale: torch.Tensor | None = None, in_key="epistemic_std", out_key="reward"):
@@ -45,7 +51,7 @@ class UncertaintyReward(Transform):
         if self.scale is not None:
             if self.scale.shape[-1] != sigma.shape[-1]:
                 raise ValueError(f"UncertaintyReward: scale has {self.scale.shape[-1]} dims, sigma has {sigma.shape[-1]}")
-            sigma = sigma / self.scale
+            sigma = sigma / self.scale.to(sigma.device)
         if self.ord == 2.0:  # the common case, without linalg's dispatch overhead
             return sigma.square().sum(-1, keepdim=True).sqrt()
         return torch.linalg.vector_norm(sigma, ord=self.ord, dim=-1, keepdim=True)

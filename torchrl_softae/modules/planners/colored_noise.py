@@ -20,23 +20,27 @@ def colored_noise(
     shape: tuple[int, ...],
     generator: torch.Generator | None = None,
     dtype: torch.dtype = torch.float32,
+    device=None,
 ) -> torch.Tensor:
     """Unit-variance power-law noise whose last dimension is time.
 
     Args:
         exponent (float): spectral exponent beta >= 0.
         shape: output shape ``(..., T)``; every leading index is an independent series.
-        generator: torch generator for reproducibility.
+        generator: torch generator for reproducibility (on ``device``).
+        device: where the noise is created; default the generator's device (CPU without one).
 
     Returns:
         Tensor of ``shape``.
     """
     if exponent < 0:
         raise ValueError(f"colored_noise: exponent={exponent!r}, expected >= 0")
+    if device is None:
+        device = generator.device if generator is not None else torch.device("cpu")
     T = shape[-1]
     if exponent == 0 or T == 1:
-        return torch.randn(shape, generator=generator, dtype=dtype)
-    f = torch.fft.rfftfreq(T, dtype=torch.float64)
+        return torch.randn(shape, generator=generator, dtype=dtype, device=device)
+    f = torch.fft.rfftfreq(T, dtype=torch.float64)  # a handful of frequencies: computed on the CPU
     f[0] = 1.0 / T  # lowest resolvable frequency instead of the DC singularity
     s = f.pow(-exponent / 2.0)
     # Expected std of the un-normalized series, to normalize to unit variance.
@@ -44,9 +48,9 @@ def colored_noise(
     w[-1] *= (1 + (T % 2)) / 2.0
     sigma = 2.0 * math.sqrt(float(w[1:].square().sum())) / T
     n_f = f.shape[0]
-    s = s.to(dtype)
-    re = torch.randn((*shape[:-1], n_f), generator=generator, dtype=dtype) * s
-    im = torch.randn((*shape[:-1], n_f), generator=generator, dtype=dtype) * s
+    s = s.to(dtype=dtype, device=device)
+    re = torch.randn((*shape[:-1], n_f), generator=generator, dtype=dtype, device=device) * s
+    im = torch.randn((*shape[:-1], n_f), generator=generator, dtype=dtype, device=device) * s
     if T % 2 == 0:  # the Nyquist coefficient of a real signal is real
         im[..., -1] = 0.0
         re[..., -1] *= math.sqrt(2.0)

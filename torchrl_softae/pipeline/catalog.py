@@ -1,0 +1,69 @@
+"""What the pipeline knows about each environment, derived from the one list
+(:data:`torchrl_softae.envs.robots.ENVS`): how to build it for TorchRL, its tasks, its coverage
+projection, its held-out set and its per-env config defaults."""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+
+from torchrl_softae.envs.robots import ENVS, EnvRecord, get_record
+from torchrl_softae.tasks import Task, tasks_for
+
+__all__ = ["EnvEntry", "get_env_entry", "env_ids"]
+
+
+@dataclass
+class EnvEntry:
+    """What the pipeline needs to explore and evaluate one environment.
+
+    Args:
+        env_id: the name used on the command line (``softae explore --env ID``).
+        make: ``() -> EnvBase``: a TorchRL env with an ``"observation"`` entry and a bounded action.
+        tasks: the downstream tasks, by name.
+        projection: ``(N, d) -> (N, 2)`` coverage projection for heatmaps, with axis labels; it
+            receives the entries ``projection_keys`` of the transitions (default the observation;
+            e.g. the fish's world position, which the env reports through ``info``).
+        heldout: ``(n, seed) -> transitions`` held-out set (``observation``, ``action``,
+            ``("next", "observation")``) from a data source that does not use explored data.
+        defaults: nested overrides of :class:`~torchrl_softae.pipeline.config.ExploreConfig` (paper values per env).
+    """
+
+    env_id: str
+    make: Callable[[], EnvBase]
+    tasks: dict[str, Task]
+    projection: Callable[[torch.Tensor], torch.Tensor]
+    projection_labels: tuple[str, str]
+    heldout: Callable[[int, int], TensorDictBase]
+    defaults: dict = field(default_factory=dict)
+    description: str = ""
+    projection_keys: tuple = ("observation",)
+    version: str = "1"  # bump when the physics changes: keys the held-out cache
+    accuracy_groups: dict = field(default_factory=dict)  # extra normalized-MSE reports, name -> dims
+
+    def project(self, data) -> torch.Tensor:
+        """``data`` (a tensordict of transitions) -> ``(N, 2)`` coverage coordinates."""
+        return self.projection(*(data.get(k) for k in self.projection_keys))
+
+
+_ENTRIES: dict[str, EnvEntry] = {}
+
+
+def env_ids() -> list[str]:
+    return sorted(r.env_id for r in ENVS)
+
+
+def get_env_entry(env_id: str) -> EnvEntry:
+    """The pipeline entry of ``env_id``: built by ``torchrl_softae.pipeline.entries.FAMILY.entry``
+    from the env's record and tasks, once per process."""
+    if env_id not in _ENTRIES:
+        record: EnvRecord = get_record(env_id)  # ValueError naming the valid ids
+        module = importlib.import_module(f"torchrl_softae.pipeline.entries.{record.family}")
+        entry = module.entry(record, tasks_for(env_id))
+        entry.defaults.setdefault("episode_length", record.max_episode_steps)
+        _ENTRIES[env_id] = entry
+    return _ENTRIES[env_id]

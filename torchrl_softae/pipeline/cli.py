@@ -1,0 +1,251 @@
+"""``softae``: explore a robot's dynamics task-agnostically, then solve tasks zero-shot.
+
+    softae explore  --env Pendulum-v1 --method softae --episodes 10 --seed 0 --run-dir runs/pend
+    softae evaluate --run-dir runs/pend --task swingup
+    softae plot     --run-dir runs/pend          (a run, or a folder of runs to compare)
+    softae sweep    sweeps/pendulum.yaml         (method x seed x beta grid, run locally)
+    softae demo                                  (a short exploration + evaluation + plots)
+
+Heavy imports (torch, torchrl) happen only after the arguments parse, so ``--help`` is instant.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from torchrl_softae.pipeline.methods import METHOD_NAMES, get_method
+
+PRESETS = {
+    "paper": [],
+    # Small enough for a laptop-minute demo; the method is unchanged, only sizes/steps shrink.
+    "quick": [
+        "model.num_cells=128", "model.depth=3", "planner.num_candidates=100", "planner.top_k=10",
+        "planner.optim_steps=3", "planner.num_particles=5", "train.lr=1e-3", "train.epochs=20",
+        "train.max_grad_steps=600", "heldout_size=1000",
+    ],
+}
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity, e.g. under ``taskset``), not the machine's."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _threads(n: int | None) -> int:
+    import torch
+
+    if n is not None and n < 1:
+        from torchrl_softae.pipeline.config import ConfigError
+
+        raise ConfigError(f"--threads={n} is invalid: expected a positive number of threads")
+    n = n or available_cores()
+    torch.set_num_threads(n)
+    return n
+
+
+def _add_explore_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--env", default="Pendulum-v1", help="environment id (see `softae envs`); default Pendulum-v1")
+    p.add_argument("--method", default="softae", help=f"one of {', '.join(METHOD_NAMES)}; default softae")
+    p.add_argument("--episodes", type=int, default=None, help="exploration episodes N (default 10)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--run-dir", default=None, help="output folder; an existing run with the same settings resumes "
+                                                   "(default runs/ENV/METHOD-bBETA-sSEED)")
+    p.add_argument("--episode-length", type=int, default=None, help="exploration horizon T (env default)")
+    p.add_argument("--beta", type=float, default=None,
+                   help="optimism beta for the methods that use it (default: the paper's, Table S6)")
+    p.add_argument("--task", default=None, help="task optimized by hucrl (and nothing else)")
+    p.add_argument("--eval-every", type=int, default=None, help="zero-shot evaluate all tasks every K episodes (0 = never)")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="paper",
+                   help="paper: Table S6/S7 sizes; quick: small model/planner for demos and tests")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override any config field, e.g. --set planner.horizon=5 --set train.lr=1e-4 (repeatable)")
+    p.add_argument("--wandb", choices=["offline", "online", "disabled"], default="offline",
+                   help="W&B tracking (default offline: no network needed; `wandb sync RUN/wandb/...` later)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads (default: the cores this process may use). Two runs side by side on "
+                        "2 cores: give each --threads 1 (or taskset -c 0 / -c 1), else both slow down 10x+")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _config(args):
+    from torchrl_softae.pipeline.config import make_config
+
+    overrides = PRESETS[args.preset] + list(args.overrides)
+    return make_config(
+        args.env, args.method, overrides, episodes=args.episodes, seed=args.seed, episode_length=args.episode_length,
+        beta=args.beta, task=args.task, eval_every=args.eval_every, wandb=args.wandb,
+    )
+
+
+def run_dir_for(cfg, root: str = "runs") -> str:
+    """``ROOT/ENV/NAME`` with the name the method table gives (beta only where the method uses it)."""
+    return os.path.join(root, cfg.env, get_method(cfg.method).run_name(cfg.seed, cfg.beta))
+
+
+def cmd_explore(args) -> int:
+    from torchrl_softae.pipeline.explore import explore
+
+    cfg = _config(args)
+    _threads(args.threads)
+    run_dir = args.run_dir or run_dir_for(cfg)
+    history = explore(cfg, run_dir, progress=not args.quiet)
+    last = history[-1]
+    print(f"{run_dir}: {last['episode'] + 1} episodes, {last['transitions']} transitions, "
+          f"held-out normalized MSE {last['heldout_nmse']:.4g}, coverage {last['coverage']:.3f}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from torchrl_softae.pipeline.evaluate import evaluate_run
+
+    _threads(args.threads)
+    res = evaluate_run(args.run_dir, tasks=args.task or None, episodes=args.episodes, seed=args.seed,
+                       propagation=args.propagation, progress=not args.quiet, planner_overrides=args.overrides)
+    print(f"{args.run_dir}: held-out normalized MSE {res['heldout_nmse']:.4g}")
+    for name, r in res["tasks"].items():
+        extra = ""
+        if r["metrics"] and r["metrics"][0]:
+            keys = r["metrics"][0].keys()
+            extra = "  " + ", ".join(f"{k}={sum(m[k] for m in r['metrics']) / len(r['metrics']):.3g}" for k in keys)
+        print(f"  {name:>12}: mean return {r['mean_return']:.4g} over {len(r['returns'])} episodes{extra}")
+    return 0
+
+
+def cmd_plot(args) -> int:
+    from torchrl_softae.pipeline.plots import plot_path
+
+    for p in plot_path(args.run_dir):
+        print(p)
+    return 0
+
+
+def cmd_sweep(args) -> int:
+    import itertools
+
+    import yaml
+
+    with open(args.file) as f:
+        spec = yaml.safe_load(f)
+    params = spec.get("parameters", {})
+    grid_keys = [k for k, v in params.items() if "values" in v]
+    fixed = {k: v["value"] for k, v in params.items() if "value" in v}
+    base = [a for a in spec.get("command", []) if not a.startswith("${")]
+    base = base[base.index("explore") + 1 :] if "explore" in base else []
+    combos, seen = [], set()
+    for combo in itertools.product(*(params[k]["values"] for k in grid_keys)):
+        run = {**fixed, **dict(zip(grid_keys, combo))}
+        if not get_method(str(run.get("method", "softae"))).uses_beta:
+            run.pop("beta", None)  # beta does not change this method: one run, not one per beta
+        key = tuple(sorted(run.items()))
+        if key not in seen:
+            seen.add(key)
+            combos.append(run)
+    total = 1
+    for k in grid_keys:
+        total *= len(params[k]["values"])
+    print(f"sweep {args.file}: {len(combos)} runs over {', '.join(grid_keys)}"
+          + (f" ({total - len(combos)} duplicates dropped: parameters a method ignores)" if total > len(combos) else ""))
+    for run in combos:
+        argv = ["explore", *base] + [f"--{k.replace('_', '-')}={v}" for k, v in run.items()]
+        if args.root:
+            cfg = _config(build_parser().parse_args(argv))
+            argv.append(f"--run-dir={run_dir_for(cfg, args.root)}")
+        print("softae " + " ".join(argv), flush=True)
+        if not args.dry_run:
+            rc = main(argv)
+            if rc:
+                return rc
+    return 0
+
+
+def cmd_demo(args) -> int:
+    run_dir = args.run_dir
+    steps = [
+        ["explore", "--env", "Pendulum-v1", "--method", "softae", "--preset", "quick", "--episodes", str(args.episodes),
+         "--run-dir", run_dir, "--wandb", args.wandb],
+        ["evaluate", "--run-dir", run_dir, "--task", "swingup", "--episodes", "1"],
+        ["plot", "--run-dir", run_dir],
+    ]
+    for argv in steps:
+        print("\n$ softae " + " ".join(argv), flush=True)
+        rc = main(argv)
+        if rc:
+            return rc
+    print(f"\nplots in {os.path.join(run_dir, 'plots')}")
+    return 0
+
+
+def cmd_envs(args) -> int:
+    from torchrl_softae.pipeline.catalog import env_ids, get_env_entry
+
+    for env_id in env_ids():
+        e = get_env_entry(env_id)
+        print(f"{env_id:>20}  tasks: {', '.join(sorted(e.tasks)):<30} {e.description}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="softae", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("explore", help="explore an env task-agnostically and learn its dynamics",
+                       description="Episode-wise active exploration (paper, Algorithm 1). Writes checkpoint, "
+                                   "replay buffer, logs; rerunning the same command resumes a killed run.")
+    _add_explore_args(p)
+    p.set_defaults(func=cmd_explore)
+
+    p = sub.add_parser("evaluate", help="zero-shot task returns and model accuracy of a run")
+    p.add_argument("--run-dir", required=True)
+    p.add_argument("--task", action="append", default=[], help="task name (repeatable; default: all tasks of the env)")
+    p.add_argument("--episodes", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--propagation", default="mean",
+                   help="how the planner propagates the model for the task: a mode of EnsembleModelEnv "
+                        "(default mean); optimistic plans with the run's beta")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="planner.KEY=VALUE",
+                   help="plan the task differently from exploration, e.g. --set planner.horizon=30 (repeatable)")
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("plot", help="coverage heatmaps, curves and bars as PNG files")
+    p.add_argument("--run-dir", required=True, help="a run dir, or a folder of runs to compare methods")
+    p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser("sweep", help="run a W&B sweep file's grid locally (no W&B server needed)")
+    p.add_argument("file", help="sweep YAML (W&B format: parameters with values lists)")
+    p.add_argument("--root", default=None, help="put each run under ROOT/ENV/METHOD-bBETA-sSEED")
+    p.add_argument("--dry-run", action="store_true", help="print the commands only")
+    p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("demo", help="a short Pendulum exploration, evaluation and plots (a few minutes)")
+    p.add_argument("--run-dir", default=os.path.join("runs", "demo"))
+    p.add_argument("--episodes", type=int, default=6)
+    p.add_argument("--wandb", choices=["offline", "online", "disabled"], default="offline")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("envs", help="list environments and their tasks")
+    p.set_defaults(func=cmd_envs)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from torchrl_softae.pipeline.config import ConfigError
+    from torchrl_softae.pipeline.runs import CheckpointError
+
+    try:
+        return args.func(args)
+    except (ConfigError, CheckpointError) as e:
+        print(f"softae: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,163 @@
+"""Zero-shot evaluation: the explored model + iCEM solve a task they never saw, on the real env."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchrl_softae.envs.model_env import PROPAGATION_MODES
+from torchrl_softae.modules import EnsembleWorldModel
+from torchrl_softae.pipeline.builders import build_planner_policy, build_world_model
+from torchrl_softae.pipeline.catalog import get_env_entry
+from torchrl_softae.pipeline.config import ConfigError, ExploreConfig, apply_overrides
+from torchrl_softae.pipeline.data import episode_seed, heldout_set, make_real_env, normalized_mse, seed_everything
+from torchrl_softae.pipeline.runs import CheckpointError, RunDir
+from torchrl_softae.tasks.base import Task, TaskReward
+
+__all__ = ["load_run", "zero_shot", "task_policy", "reference_returns", "evaluate_run"]
+
+
+def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, dict]:
+    """Config, trained model and checkpoint state of a run dir."""
+    run = RunDir(run_dir)
+    if not run.exists():
+        raise CheckpointError(f"{run.path} holds no checkpoint: run `softae explore --run-dir {run.path}` first")
+    state = run.load()
+    cfg = ExploreConfig.from_dict(state["config"])
+    entry = get_env_entry(cfg.env)
+    env = entry.make()
+    d_s, d_a = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+    env.close()
+    model = build_world_model(cfg.model, d_s, d_a)
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as e:
+        raise CheckpointError(f"checkpoint model does not match its config ({e})") from None
+    return cfg, model.eval(), state
+
+
+def _task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for) -> dict:
+    """Roll out ``policy_for(env, episode_seed)`` for ``episodes`` seeded episodes of ``task`` on the
+    real env with the task's reward: ``{"returns": [...], "metrics": [{...}, ...]}``.
+
+    The one place that fixes the evaluation episodes: zero-shot controllers and the model-free
+    references see the same initial states."""
+    real = make_real_env(get_env_entry(env), task.horizon)
+    real.append_transform(TaskReward(task))
+    returns, metrics = [], []
+    for i in range(episodes):
+        s = episode_seed(seed, i)
+        seed_everything(s)
+        policy = policy_for(real, s)
+        real.set_seed(s)
+        traj = real.rollout(task.horizon, policy, break_when_any_done=True)
+        returns.append(float(traj["next", "reward"].sum()))
+        metrics.append(task.metrics(traj))
+    real.close()
+    return {"returns": returns, "metrics": metrics}
+
+
+def task_policy(cfg: ExploreConfig, model: EnsembleWorldModel, task: Task, action_spec, propagation: str = "mean",
+                seed: int = 0, progress=None):
+    """The zero-shot controller: iCEM with ``task``'s reward on the learned model, planned with the
+    run's planner settings and, for optimistic propagation, the run's beta."""
+    if propagation not in PROPAGATION_MODES:
+        raise ConfigError(f"propagation {propagation!r}; valid: {', '.join(PROPAGATION_MODES)}")
+    return build_planner_policy(model, action_spec, cfg.planner, mode=propagation, reward=task, beta=cfg.beta,
+                                seed=seed, progress=progress)
+
+
+@torch.no_grad()
+def zero_shot(
+    cfg: ExploreConfig,
+    model: EnsembleWorldModel,
+    task: Task,
+    episodes: int = 3,
+    seed: int = 0,
+    propagation: str = "mean",
+    progress: bool = True,
+) -> dict:
+    """MPC with the task reward on the learned model, acting on the real env.
+
+    Returns ``{"returns": [...], "metrics": [{...}, ...]}``, one entry per episode; deterministic
+    for a given seed.
+    """
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=episodes * task.horizon, desc=f"zero-shot {task.name}", unit="step", leave=False)
+
+    def planner(real, s):
+        return task_policy(cfg, model, task, real.action_spec, propagation, seed=s, progress=bar)
+
+    res = _task_rollouts(cfg.env, task, episodes, seed, planner)
+    if bar is not None:
+        bar.close()
+    return res
+
+
+@torch.no_grad()
+def reference_returns(env: str, task: str, policy: str = "random", episodes: int = 3, seed: int = 0) -> list[float]:
+    """Task returns without a model, on the same episodes (seeds) as :func:`zero_shot`.
+
+    ``policy="random"``: uniform random actions from the action spec (what random exploration
+    does); ``"zero"``: the centre of the action space at every step (no control). They tell a
+    zero-shot controller that solves a task from one that does no better than not trying.
+    """
+    if policy not in ("random", "zero"):
+        raise ValueError(f"reference policy {policy!r}: expected 'random' or 'zero'")
+    entry = get_env_entry(env)
+    if task not in entry.tasks:
+        raise ConfigError(f"unknown task {task!r} for env {env!r}; valid tasks: {', '.join(sorted(entry.tasks))}")
+
+    def reference_policy(real, s):
+        if policy == "random":
+            return None  # TorchRL's rollout samples from the action spec
+        spec = real.action_spec
+        centre = (spec.space.low + spec.space.high) / 2
+        return lambda td: td.set("action", centre.expand(*td.batch_size, *centre.shape).clone())
+
+    return _task_rollouts(env, entry.tasks[task], episodes, seed, reference_policy)["returns"]
+
+
+def evaluate_run(
+    run_dir: str | Path, tasks: list[str] | None = None, episodes: int = 3, seed: int = 0,
+    propagation: str = "mean", progress: bool = True, planner_overrides: list[str] | None = None,
+) -> dict:
+    """Zero-shot returns on ``tasks`` (default: all of the env's) and held-out normalized MSE.
+
+    ``planner_overrides`` (``["planner.horizon=30", ...]``) plan the tasks differently from the
+    exploration. Results are written to ``RUN/eval/TASK.json`` (``TASK@key=value,...json`` with
+    overrides) and ``RUN/eval/model_accuracy.json``.
+    """
+    cfg, model, state = load_run(run_dir)
+    if planner_overrides:
+        bad = [o for o in planner_overrides if not o.strip().startswith("planner.")]
+        if bad:
+            raise ConfigError(f"evaluate only overrides planner settings (planner.KEY=VALUE), got {bad}")
+        apply_overrides(cfg, planner_overrides).validate()
+    run = RunDir(run_dir)
+    entry = get_env_entry(cfg.env)
+    names = tasks or sorted(entry.tasks)
+    for name in names:
+        if name not in entry.tasks:
+            raise ConfigError(f"unknown task {name!r} for env {cfg.env!r}; valid tasks: {', '.join(sorted(entry.tasks))}")
+    out = {"env": cfg.env, "method": cfg.method, "seed": cfg.seed, "episodes_explored": state["episode"] + 1,
+           "transitions": state["num_transitions"]}
+    heldout = heldout_set(entry, run, cfg.heldout_size)
+    out["heldout_nmse"], groups = normalized_mse(model, heldout, entry.accuracy_groups)
+    out.update({f"heldout_nmse/{k}": v for k, v in groups.items()})
+    run.write_json(run.eval_dir / "model_accuracy.json", dict(out))
+    out["tasks"] = {}
+    for name in names:
+        res = zero_shot(cfg, model, entry.tasks[name], episodes=episodes, seed=seed, propagation=propagation, progress=progress)
+        res["mean_return"] = float(np.mean(res["returns"]))
+        # which model was evaluated: a resumed, longer exploration makes this result stale
+        res.update(propagation=propagation, beta=cfg.beta, seed=seed, episodes=episodes, planner=dict(vars(cfg.planner)),
+                   episodes_explored=out["episodes_explored"])
+        suffix = ("@" + ",".join(o.split(".", 1)[1] for o in planner_overrides)) if planner_overrides else ""
+        run.write_json(run.eval_dir / f"{name}{suffix}.json", res)
+        out["tasks"][name] = res
+    return out

@@ -1,0 +1,231 @@
+"""Episode-wise active exploration (paper, Algorithm 1).
+
+For episode n = 1..N:
+    pi_n   = iCEM on the current ensemble with the exploration reward (or random / a task for baselines)
+    D_n    = D_{n-1} + rollout of pi_n on the real env (a TorchRL Collector, T steps)
+    model  = retrain the ensemble on D_n (Table S6 schedule)
+    -> checkpoint: model, optimizer, replay buffer, history (a killed run resumes here)
+"""
+from __future__ import annotations
+
+import math
+import time
+import uuid
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.collectors import Collector
+
+from torchrl_softae.envs.guard import EnvFaultWarning
+from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
+from torchrl_softae.pipeline.builders import build_exploration_policy, build_world_model
+from torchrl_softae.pipeline.catalog import get_env_entry
+from torchrl_softae.pipeline.config import ConfigError, ExploreConfig
+from torchrl_softae.pipeline.data import coverage, episode_seed, heldout_set, make_real_env, normalized_mse, seed_everything
+from torchrl_softae.pipeline.evaluate import zero_shot
+from torchrl_softae.pipeline.runs import CheckpointError, RunDir
+
+__all__ = ["Explorer", "explore", "make_real_env", "coverage", "heldout_set", "normalized_mse"]
+
+# Keys that may change between a run and its resumption (everything else must match).
+RESUMABLE_KEYS = {"episodes", "wandb", "eval_every", "eval_episodes"}
+
+
+def _flatten(d: dict, prefix="") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, prefix + k + "."))
+        else:
+            out[prefix + k] = v
+    return out
+
+
+def _fixed_part(config: dict) -> dict:
+    return {k: v for k, v in _flatten(config).items() if k not in RESUMABLE_KEYS}
+
+
+class Explorer:
+    """Runs (or resumes) ``softae explore`` for one config into one run dir.
+
+    Args:
+        cfg: a validated :class:`ExploreConfig`.
+        run_dir: where everything is written; an existing run with the same config resumes.
+        progress: tqdm bars for episodes, planning steps and training.
+    """
+
+    def __init__(self, cfg: ExploreConfig, run_dir: str | Path, progress: bool = True):
+        self.cfg = cfg.validate()
+        self.run = RunDir(run_dir)
+        self.run.path.mkdir(parents=True, exist_ok=True)
+        self.progress = progress
+        self.entry = get_env_entry(cfg.env)
+        self.task = self.entry.tasks.get(cfg.task) if cfg.task else None
+
+    # ------------------------------------------------------------------ set-up / resume
+    def _check_config(self) -> str | None:
+        """Returns the W&B id of an existing run after checking its config matches."""
+        stored = self.run.read_config()
+        if stored is None:
+            return None
+        old, new = _flatten(stored.get("config", {})), _flatten(self.cfg.to_dict())
+        diff = [f"{k}: stored {old.get(k)!r} != requested {new.get(k)!r}"
+                for k in sorted(set(old) | set(new)) if k not in RESUMABLE_KEYS and old.get(k) != new.get(k)]
+        if diff:
+            raise ConfigError(
+                f"{self.run.path} holds a run with a different configuration ({'; '.join(diff)}); "
+                "use another --run-dir or the original settings"
+            )
+        return stored.get("wandb_id")
+
+    def _logger(self, wandb_id: str):
+        if self.cfg.wandb == "disabled":
+            return None
+        from torchrl.record.loggers.wandb import WandbLogger
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return WandbLogger(
+                exp_name=f"{self.cfg.env}-{self.cfg.method}-s{self.cfg.seed}", offline=self.cfg.wandb == "offline",
+                save_dir=str(self.run.path), id=wandb_id, project="torchrl-softae", resume="allow",
+                config=self.cfg.to_dict(), log_env_packages=False,
+            )
+
+    def run_exploration(self) -> list[dict]:
+        cfg = self.cfg
+        wandb_id = self._check_config() or uuid.uuid4().hex[:12]
+        self.run.write_json(self.run.config_path, {"config": cfg.to_dict(), "wandb_id": wandb_id})
+        env = make_real_env(self.entry, cfg.episode_length)
+        d_s = env.observation_spec["observation"].shape[-1]
+        d_a = env.action_spec.shape[-1]
+        capacity = cfg.episodes * cfg.episode_length + 1
+        seed_everything(cfg.seed)
+        model = build_world_model(cfg.model, d_s, d_a)
+        trainer = EnsembleTrainer(
+            EnsembleLoss(model), lr=cfg.train.lr, batch_size=cfg.train.batch_size, epochs=cfg.train.epochs,
+            max_grad_steps=cfg.train.max_grad_steps, val_fraction=cfg.train.val_fraction, progress=self.progress,
+        )
+        history: list[dict] = []
+        start = 0
+        if self.run.exists():
+            state = self.run.load()
+            if _fixed_part(state["config"]) != _fixed_part(cfg.to_dict()):
+                raise CheckpointError(f"{self.run.checkpoint_path} belongs to another configuration than config.json")
+            try:
+                model.load_state_dict(state["model"])
+                trainer.load_state_dict(state["trainer"])
+            except (RuntimeError, KeyError, ValueError) as e:
+                raise CheckpointError(f"checkpoint does not fit this model ({e})") from None
+            history = state["history"]
+            start = state["episode"] + 1
+            rb = self.run.load_replay_buffer(state, capacity)
+        else:
+            rb = self.run.new_replay_buffer(capacity)
+        heldout = heldout_set(self.entry, self.run, cfg.heldout_size)
+        bounds = self._projection_bounds(heldout)
+        logger = self._logger(wandb_id)
+
+        bar = None
+        if self.progress and start < cfg.episodes:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=cfg.episodes, initial=start, desc=f"explore {cfg.env} [{cfg.method}]", unit="episode")
+        for n in range(start, cfg.episodes):
+            row = self._episode(n, env, model, trainer, rb, heldout, bounds)
+            history.append(row)
+            # No RNG state: every episode reseeds from (seed, episode), so a resumed run draws the
+            # same numbers as an uninterrupted one.
+            state = {
+                "episode": n, "config": cfg.to_dict(), "model": model.state_dict(), "trainer": trainer.state_dict(),
+                "history": history, "wandb_id": wandb_id,
+            }
+            self.run.save(state, rb)
+            if logger is not None:
+                for k, v in row.items():
+                    if isinstance(v, (int, float)) and k != "episode" and math.isfinite(v):
+                        logger.log_scalar(k, v, step=n)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(nmse=f"{row['heldout_nmse']:.3g}", cov=f"{row['coverage']:.2f}")
+        if bar is not None:
+            bar.close()
+        if logger is not None:
+            import wandb
+
+            wandb.finish()
+        env.close()
+        self.model, self.replay_buffer, self.history = model, rb, history
+        return history
+
+    def _projection_bounds(self, heldout: TensorDictBase) -> torch.Tensor:
+        p = self.entry.project(heldout)
+        lo, hi = p.min(0).values, p.max(0).values
+        pad = 0.05 * (hi - lo).clamp_min(1e-6)
+        return torch.stack([lo - pad, hi + pad])
+
+    # ------------------------------------------------------------------ one episode
+    def _episode(self, n, env, model, trainer, rb, heldout, bounds) -> dict:
+        cfg = self.cfg
+        s = episode_seed(cfg.seed, n)
+        seed_everything(s)
+        t0 = time.perf_counter()
+        step_bar = None
+        if self.progress:
+            from tqdm.auto import tqdm
+
+            step_bar = tqdm(total=cfg.episode_length, desc=f"episode {n} (plan+act)", leave=False, unit="step")
+        policy = build_exploration_policy(cfg, model, env, self.task, seed=s, progress=step_bar)
+        if hasattr(policy, "reset"):
+            policy.reset()
+        env.set_seed(s)
+        faults_before = env.base_env.num_faults
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", EnvFaultWarning)
+            collector = Collector(
+                env, policy, frames_per_batch=cfg.episode_length, total_frames=cfg.episode_length,
+                auto_register_policy_transforms=False,
+            )
+            data = next(iter(collector))
+            collector.shutdown()
+        if step_bar is not None:
+            step_bar.close()
+        data = data.reshape(-1)
+        keys = {"observation", *self.entry.projection_keys}
+        rb.extend(data.select(*keys, "action", *(("next", k) for k in keys), ("next", "reward"),
+                              ("next", "done"), ("next", "env_fault"), strict=False).cpu())
+        t_collect = time.perf_counter() - t0
+
+        t1 = time.perf_counter()
+        report = trainer.fit(rb, generator=torch.Generator().manual_seed(s))
+        t_train = time.perf_counter() - t1
+
+        stored = rb.storage[: len(rb)]
+        nmse, groups = normalized_mse(model, heldout, self.entry.accuracy_groups)
+        row = {
+            "episode": n,
+            "transitions": len(rb),
+            "env_faults": int(env.base_env.num_faults - faults_before),
+            "collect_seconds": t_collect,
+            "train_seconds": t_train,
+            "plan_ms_per_step": 1e3 * getattr(policy, "seconds", 0.0) / max(getattr(policy, "calls", 0), 1),
+            "train_loss": report.train_loss[-1] if report.train_loss else float("nan"),
+            "val_mse": report.final_val_mse,
+            "grad_steps": report.grad_steps,
+            "heldout_nmse": nmse,
+            "coverage": coverage(self.entry, stored, bounds),
+            "episode_env_reward": float(data["next", "reward"].sum()),
+            **{f"heldout_nmse/{k}": v for k, v in groups.items()},
+        }
+        if cfg.eval_every and ((n + 1) % cfg.eval_every == 0 or n + 1 == cfg.episodes):
+            for name, task in self.entry.tasks.items():
+                res = zero_shot(cfg, model, task, episodes=cfg.eval_episodes, seed=10_000 + n, progress=False)
+                row[f"return/{name}"] = float(np.mean(res["returns"]))
+        return row
+
+
+def explore(cfg: ExploreConfig, run_dir: str | Path, progress: bool = True) -> list[dict]:
+    """Run or resume an exploration; returns the per-episode history."""
+    return Explorer(cfg, run_dir, progress=progress).run_exploration()

@@ -1,0 +1,177 @@
+"""Run directories: atomic checkpoints, the persistent replay buffer, logs. A killed run resumes.
+
+Layout of a run dir::
+
+    config.json          the ExploreConfig (validated against on resume)
+    checkpoint.pt        last complete episode: model, optimizer, history (no RNG: episodes reseed
+                         from (seed, episode); no planner state: each episode starts a fresh plan)
+    replay_ep0007/       TorchRL ReplayBuffer.dumps() of all transitions up to that episode
+    replay_scratch/      LazyMemmapStorage working files of the live buffer
+    metrics.jsonl/.csv   one row per episode (rewritten from the checkpoint, so never ahead of it)
+    heldout.pt           held-out transitions for the model-accuracy metric
+    eval/TASK.json       zero-shot evaluation results
+    plots/*.png          coverage heatmap, curves, bars
+    wandb/               offline W&B run (``wandb sync`` it later)
+
+Ordering makes every state consistent: the replay dump of episode n is written to a new
+directory, then the checkpoint that names it replaces the old one atomically (``os.replace``),
+then older dumps are deleted. A kill at any point leaves the previous checkpoint and its dump.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import shutil
+from pathlib import Path
+
+import torch
+from torchrl.data import LazyMemmapStorage, ReplayBuffer
+
+__all__ = ["CheckpointError", "RunDir", "atomic_write_text", "atomic_torch_save"]
+
+CHECKPOINT_FORMAT = 1
+
+
+def _atomic_write(path: Path, write) -> None:
+    """``write(file)`` into a temporary sibling, flush it to disk, then ``os.replace`` it onto
+    ``path``: a reader (or a resumed run) sees the old file or the new one, never half of one."""
+    path = Path(path)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    _atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def atomic_torch_save(obj, path: Path) -> None:
+    _atomic_write(path, lambda f: torch.save(obj, f))
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is unreadable or does not belong to this configuration."""
+
+
+class RunDir:
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def config_path(self) -> Path:
+        return self.path / "config.json"
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.path / "checkpoint.pt"
+
+    @property
+    def heldout_path(self) -> Path:
+        return self.path / "heldout.pt"
+
+    def replay_dump(self, episode: int) -> Path:
+        return self.path / f"replay_ep{episode:04d}"
+
+    @property
+    def plots(self) -> Path:
+        p = self.path / "plots"
+        p.mkdir(parents=True, exist_ok=True)
+        return p
+
+    @property
+    def eval_dir(self) -> Path:
+        p = self.path / "eval"
+        p.mkdir(parents=True, exist_ok=True)
+        return p
+
+    def exists(self) -> bool:
+        return self.checkpoint_path.exists()
+
+    # ------------------------------------------------------------------ config
+    def read_config(self) -> dict | None:
+        if not self.config_path.exists():
+            return None
+        try:
+            return json.loads(self.config_path.read_text())
+        except json.JSONDecodeError as e:
+            raise CheckpointError(f"{self.config_path} is not valid JSON ({e}); it is corrupt") from None
+
+    def write_json(self, path: Path, obj) -> None:
+        atomic_write_text(path, json.dumps(obj, indent=1, sort_keys=True, default=float))
+
+    # ------------------------------------------------------------------ replay buffer
+    def new_replay_buffer(self, capacity: int) -> ReplayBuffer:
+        scratch = self.path / "replay_scratch"
+        shutil.rmtree(scratch, ignore_errors=True)
+        return ReplayBuffer(storage=LazyMemmapStorage(capacity, scratch_dir=str(scratch)), batch_size=64)
+
+    def load_replay_buffer(self, state: dict, capacity: int | None = None) -> ReplayBuffer:
+        """The replay buffer a checkpoint ``state`` names, grown to ``capacity`` if that is larger."""
+        episode, expected = state["episode"], state["num_transitions"]
+        rb = self.new_replay_buffer(state["replay_capacity"])
+        dump = self.replay_dump(episode)
+        if not dump.exists():
+            raise CheckpointError(f"checkpoint names replay dump {dump}, which is missing: the run dir is corrupt")
+        try:
+            rb.loads(str(dump))
+        except Exception as e:  # noqa: BLE001
+            raise CheckpointError(f"replay dump {dump} is unreadable ({type(e).__name__}: {e})") from None
+        if len(rb) != expected:
+            raise CheckpointError(f"replay dump {dump} holds {len(rb)} transitions, the checkpoint expects {expected}")
+        if capacity is not None and capacity > state["replay_capacity"]:  # the run was extended
+            data = rb.storage[: len(rb)]
+            rb = self.new_replay_buffer(capacity)
+            rb.extend(data)
+        return rb
+
+    # ------------------------------------------------------------------ checkpoint
+    def save(self, state: dict, rb: ReplayBuffer) -> None:
+        episode = state["episode"]
+        dump = self.replay_dump(episode)
+        shutil.rmtree(dump, ignore_errors=True)
+        rb.dumps(str(dump))
+        state = {**state, "format": CHECKPOINT_FORMAT, "num_transitions": len(rb), "replay_dump": dump.name,
+                 "replay_capacity": rb.storage.max_size}
+        atomic_torch_save(state, self.checkpoint_path)
+        for old in self.path.glob("replay_ep*"):
+            if old.name != dump.name:
+                shutil.rmtree(old, ignore_errors=True)
+        self.write_logs(state["history"])
+
+    def load(self) -> dict:
+        try:
+            state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=False)
+        except Exception as e:  # noqa: BLE001
+            raise CheckpointError(
+                f"checkpoint {self.checkpoint_path} is corrupt or unreadable ({type(e).__name__}: {e}); "
+                "delete it to restart the run from scratch, or use another --run-dir"
+            ) from None
+        if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+            raise CheckpointError(f"{self.checkpoint_path} is not a torchrl_softae checkpoint (format {CHECKPOINT_FORMAT})")
+        for key in ("episode", "config", "model", "history", "num_transitions", "replay_capacity"):
+            if key not in state:
+                raise CheckpointError(f"checkpoint {self.checkpoint_path} lacks {key!r}: it is corrupt")
+        return state
+
+    # ------------------------------------------------------------------ logs
+    def write_logs(self, history: list[dict]) -> None:
+        atomic_write_text(self.path / "metrics.jsonl", "".join(json.dumps(row, default=float) + "\n" for row in history))
+        keys = sorted({k for row in history for k, v in row.items() if not isinstance(v, (dict, list))})
+        buf = io.StringIO(newline="")
+        w = csv.DictWriter(buf, fieldnames=keys, extrasaction="ignore")
+        w.writeheader()
+        for row in history:
+            w.writerow({k: row.get(k, "") for k in keys})
+        atomic_write_text(self.path / "metrics.csv", buf.getvalue())
+
+    def history(self) -> list[dict]:
+        p = self.path / "metrics.jsonl"
+        if not p.exists():
+            return []
+        return [json.loads(line) for line in p.read_text().splitlines() if line.strip()]

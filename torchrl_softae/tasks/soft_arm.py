@@ -1,0 +1,35 @@
+"""Tasks of the soft continuum arm: (i) ``reach-close`` and (ii) ``reach-far`` (Table S5)."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from torchrl_softae.envs.robots.soft_arm import ARM_TARGETS, arm_layout
+from torchrl_softae.tasks.base import Task
+from torchrl_softae.tasks.reach import reach_reward
+
+__all__ = ["tip_position", "reach_task", "tasks"]
+
+
+def tip_position(observation: torch.Tensor, points: int) -> torch.Tensor:
+    """``(*B, d_s)`` arm observation -> ``(*B, 3)`` tip position (base frame)."""
+    return observation[..., arm_layout(points)["positions"]][..., -3:]
+
+
+def reach_task(name: str, target, points: int, horizon: int = 200) -> Task:
+    """Reward g(||p_tip - p_target||) in (0, 1] (see :func:`~torchrl_softae.tasks.reach.reach_reward`)."""
+    target_t = torch.as_tensor(np.asarray(target), dtype=torch.float32)
+
+    def reward(obs, action, next_obs):
+        return reach_reward((tip_position(next_obs, points) - target_t.to(next_obs.device)).norm(dim=-1))
+
+    def metrics(traj):
+        err = (tip_position(traj["next", "observation"], points) - target_t.to(traj.device)).norm(dim=-1)
+        return {"final_error_mm": float(err[-1]) * 1e3, "min_error_mm": float(err.min()) * 1e3}
+
+    return Task(name, reward, horizon, metrics, f"reach {np.round(np.asarray(target), 3).tolist()}",
+                params={"target": np.asarray(target).tolist()}, success_metric="final_error_mm")
+
+
+def tasks(observed_points: int = 5) -> dict[str, Task]:
+    return {name: reach_task(name, tgt, observed_points) for name, tgt in ARM_TARGETS.items()}
