@@ -8,7 +8,7 @@ from torchrl.modules import CEMPlanner
 
 from _envs import PointMassEnv
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
-from torchrl_softae.envs.common import rollout_returns
+from torchrl_softae.modules.planners import rollout_returns
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner, MPPIPlanner, colored_noise
 
 

@@ -59,5 +59,7 @@ class _MovedModuleFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 
 
 def install() -> None:
+    # first in line: a moved package's submodules (``torchrl_softae.envs.sopra.safety``) would
+    # otherwise be found on the aliased package's __path__ and loaded a second time
     if not any(isinstance(f, _MovedModuleFinder) for f in sys.meta_path):
-        sys.meta_path.append(_MovedModuleFinder())
+        sys.meta_path.insert(0, _MovedModuleFinder())

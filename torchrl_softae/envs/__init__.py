@@ -9,7 +9,7 @@ import importlib
 _EXPORTS = {
     "EnsembleModelEnv": "torchrl_softae.envs.model_env",
     "PROPAGATION_MODES": "torchrl_softae.envs.model_env",
-    "ActionSequenceEvaluator": "torchrl_softae.envs.common",
+    "ActionSequenceEvaluator": "torchrl_softae.modules.planners.contract",
     "HallucinatedControl": "torchrl_softae.envs.transforms",
     "RealActionPolicy": "torchrl_softae.envs.transforms",
     "UncertaintyReward": "torchrl_softae.envs.transforms",

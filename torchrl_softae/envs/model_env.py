@@ -9,7 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, ModelBasedEnvBase
 
-from torchrl_softae.envs.common import ActionSequenceEvaluator
+from torchrl_softae.modules.planners.contract import ActionSequenceEvaluator
 from torchrl_softae.modules.ensemble import EnsembleWorldModel, ensemble_std
 from torchrl_softae.modules.precision import resolve_planning_dtype
 
@@ -38,7 +38,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     sets it. The env never terminates.
 
     Planners score candidates through :meth:`evaluate_action_sequences` (the
-    :class:`~torchrl_softae.envs.common.ActionSequenceEvaluator` contract).
+    :class:`~torchrl_softae.modules.planners.contract.ActionSequenceEvaluator` contract).
 
     Args:
         world_model (EnsembleWorldModel): the trained ensemble.

@@ -68,7 +68,15 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=None,
                    help="torch threads (default: the cores this process may use). Two runs side by side on "
                         "2 cores: give each --threads 1 (or taskset -c 0 / -c 1), else both slow down 10x+")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress output (a resumed run still says so in one line)")
+
+
+def _progress_style(args) -> tuple[bool, object]:
+    """Bars on a terminal; one summary line per episode in a log file; nothing with --quiet."""
+    if args.quiet:
+        return False, None
+    return sys.stderr.isatty(), print
 
 
 def _config(args):
@@ -90,21 +98,34 @@ def cmd_explore(args) -> int:
     from torchrl_softae.pipeline.explore import explore
 
     cfg = _config(args)
-    _threads(args.threads)
+    threads = _threads(args.threads)
     run_dir = args.run_dir or run_dir_for(cfg)
-    history = explore(cfg, run_dir, progress=not args.quiet)
+    progress, echo = _progress_style(args)
+    if echo is not None:
+        echo(f"explore {cfg.env} with {cfg.method}: {cfg.episodes} episodes x {cfg.episode_length} steps, "
+             f"{_engine(cfg.planner.precision, threads)}; run dir {run_dir}")
+    history = explore(cfg, run_dir, progress=progress, echo=echo)
     last = history[-1]
     print(f"{run_dir}: {last['episode'] + 1} episodes, {last['transitions']} transitions, "
-          f"held-out normalized MSE {last['heldout_nmse']:.4g}, coverage {last['coverage']:.3f}")
+          f"held-out normalized MSE {last['heldout_nmse']:.4g}, coverage {last['coverage']:.3f}; "
+          f"results in {run_dir}/ (metrics.csv, checkpoint.pt, replay buffer, wandb/)")
     return 0
+
+
+def _engine(precision: str, threads: int) -> str:
+    from torchrl_softae.modules.precision import resolve_planning_dtype
+
+    dtype = resolve_planning_dtype(precision)
+    return f"planning in {'bf16' if dtype is not None else 'fp32'} (precision={precision}) on the CPU, {threads} torch threads"
 
 
 def cmd_evaluate(args) -> int:
     from torchrl_softae.pipeline.evaluate import evaluate_run
 
     _threads(args.threads)
+    progress, _ = _progress_style(args)
     res = evaluate_run(args.run_dir, tasks=args.task or None, episodes=args.episodes, seed=args.seed,
-                       propagation=args.propagation, progress=not args.quiet, planner_overrides=args.overrides)
+                       propagation=args.propagation, progress=progress, planner_overrides=args.overrides)
     print(f"{args.run_dir}: held-out normalized MSE {res['heldout_nmse']:.4g}")
     for name, r in res["tasks"].items():
         extra = ""
@@ -235,14 +256,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _plain_output() -> None:
+    """W&B without its banner, TorchRL without INFO lines (and their colour codes)."""
+    import logging
+
+    os.environ.setdefault("WANDB_SILENT", "true")
+    os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # read when torchrl is first imported
+    logging.getLogger("torchrl").setLevel(os.environ["RL_LOGGING_LEVEL"])  # in case it already was
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _plain_output()
+    from torchrl_softae.envs.robots.rendering import RenderingUnavailable
     from torchrl_softae.pipeline.config import ConfigError
     from torchrl_softae.pipeline.runs import CheckpointError
 
     try:
         return args.func(args)
-    except (ConfigError, CheckpointError) as e:
+    except (ConfigError, CheckpointError, FileNotFoundError, RenderingUnavailable) as e:
         print(f"softae: error: {e}", file=sys.stderr)
         return 2
 

@@ -18,7 +18,7 @@ __all__ = [
     "apply_overrides",
 ]
 
-from torchrl_softae.envs.common import PLANNING_PRECISIONS
+from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS
 from torchrl_softae.envs.transforms.hallucinated_control import DEFAULT_BETA
 from torchrl_softae.pipeline.methods import METHOD_NAMES as METHODS, get_method
 

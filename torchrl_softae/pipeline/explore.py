@@ -54,14 +54,20 @@ class Explorer:
     Args:
         cfg: a validated :class:`ExploreConfig`.
         run_dir: where everything is written; an existing run with the same config resumes.
-        progress: tqdm bars for episodes, planning steps and training.
+        progress: tqdm bars for episodes, planning steps and training (for a terminal).
+        echo: where one-line messages go (resuming, a summary per episode when there are no bars,
+            where the results are); ``None`` for silence. The resume line is printed even then
+            when ``announce_resume`` is true.
     """
 
-    def __init__(self, cfg: ExploreConfig, run_dir: str | Path, progress: bool = True):
+    def __init__(self, cfg: ExploreConfig, run_dir: str | Path, progress: bool = True, echo=print,
+                 announce_resume: bool = True):
         self.cfg = cfg.validate()
         self.run = RunDir(run_dir)
         self.run.path.mkdir(parents=True, exist_ok=True)
         self.progress = progress
+        self.echo = echo
+        self.announce_resume = announce_resume
         self.entry = get_env_entry(cfg.env)
         self.task = self.entry.tasks.get(cfg.task) if cfg.task else None
 
@@ -122,6 +128,10 @@ class Explorer:
             history = state["history"]
             start = state["episode"] + 1
             rb = self.run.load_replay_buffer(state, capacity)
+            if self.announce_resume or self.echo is not None:
+                what = (f"resuming {self.run.path} at episode {start + 1} of {cfg.episodes}" if start < cfg.episodes
+                        else f"{self.run.path} already holds all {cfg.episodes} episodes: nothing to do")
+                (self.echo or print)(what)
         else:
             rb = self.run.new_replay_buffer(capacity)
         heldout = heldout_set(self.entry, self.run, cfg.heldout_size)
@@ -150,6 +160,10 @@ class Explorer:
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(nmse=f"{row['heldout_nmse']:.3g}", cov=f"{row['coverage']:.2f}")
+            elif self.echo is not None:
+                self.echo(f"episode {n + 1}/{cfg.episodes}: {row['transitions']} transitions, held-out normalized MSE "
+                          f"{row['heldout_nmse']:.4g}, coverage {row['coverage']:.3f}, collect {row['collect_seconds']:.0f} s, "
+                          f"train {row['train_seconds']:.0f} s")
         if bar is not None:
             bar.close()
         if logger is not None:
@@ -226,6 +240,6 @@ class Explorer:
         return row
 
 
-def explore(cfg: ExploreConfig, run_dir: str | Path, progress: bool = True) -> list[dict]:
+def explore(cfg: ExploreConfig, run_dir: str | Path, progress: bool = True, echo=print) -> list[dict]:
     """Run or resume an exploration; returns the per-episode history."""
-    return Explorer(cfg, run_dir, progress=progress).run_exploration()
+    return Explorer(cfg, run_dir, progress=progress, echo=echo).run_exploration()

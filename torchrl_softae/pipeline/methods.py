@@ -46,10 +46,10 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("random", None, None, False, "uniform random actions (the paper's baseline)"),
     Method("mean-ae", "mean", "uncertainty", False, "iCEM on the ensemble mean, reward ||sigma|| (Mean-AE)"),
     Method("pets-ae", "sample", "uncertainty", False, "iCEM with trajectory sampling, reward ||sigma|| (PETS-AE)"),
+    Method("hucrl", "optimistic", "task", True, "iCEM with hallucinated control on a task reward (H-UCRL; needs --task)"),
     Method("softae", "optimistic", "uncertainty", True,
            "iCEM with hallucinated control s' = mu + beta sigma eta, reward ||sigma|| (SoftAE)"),
-    Method("hucrl", "optimistic", "task", True, "iCEM with hallucinated control on a task reward (H-UCRL; needs --task)"),
-)}
+)}  # the order of tables and plots: the baseline first, the paper's method last
 
 METHOD_NAMES = tuple(METHODS)
 

@@ -1,14 +1,22 @@
-"""Pictures of a run (or of a folder of runs), saved as PNG files."""
+"""Pictures of a run (or of a folder of runs), saved as PNG files.
+
+Comparisons are made only between runs of one env and one budget (episodes x transitions):
+a folder holding several budgets gets one set of figures per budget, never pooled. Methods
+appear in the method table's order (random first, SoftAE last); coverage panels share their bins
+and their colour scale; titles say the env, the budget and the number of seeds.
+"""
 from __future__ import annotations
 
 import json
+import sys
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from torchrl_softae.pipeline.runs import RunDir
+from torchrl_softae.pipeline.methods import METHOD_NAMES
+from torchrl_softae.pipeline.runs import CheckpointError, RunDir
 
 __all__ = ["plot_run", "plot_comparison", "plot_path"]
 
@@ -22,30 +30,61 @@ def _plt():
     return plt
 
 
-def _transitions(run: RunDir):
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    _plt().close(fig)
+    return path
+
+
+def _projected(run: RunDir, entry) -> np.ndarray:
     state = run.load()
     rb = run.load_replay_buffer(state)
-    return rb.storage[: len(rb)]
+    p = entry.project(rb.storage[: len(rb)])
+    return p[torch.isfinite(p).all(-1)].numpy()
 
 
-def plot_coverage(run: RunDir, entry, ax=None, bins: int = 40):
+def _coverage_panels(points: dict, entry, title: str, path: Path, bins: int = 40) -> Path:
+    """One heatmap per label, all on the same bins and the same (log) colour scale, one colour bar."""
+    from matplotlib.colors import LogNorm
+
     plt = _plt()
-    p = entry.project(_transitions(run))
-    p = p[torch.isfinite(p).all(-1)].numpy()
-    own = ax is None
-    if own:
-        fig, ax = plt.subplots(figsize=(5, 4))
-    h = ax.hist2d(p[:, 0], p[:, 1], bins=bins, cmap="viridis", cmin=1)
-    ax.set_xlabel(entry.projection_labels[0])
-    ax.set_ylabel(entry.projection_labels[1])
-    if own:
-        fig.colorbar(h[3], ax=ax, label="transitions")
-        return fig
-    return ax
+    allp = np.concatenate(list(points.values()))
+    lo, hi = allp.min(0), allp.max(0)
+    pad = 0.02 * np.maximum(hi - lo, 1e-9)
+    edges = [np.linspace(lo[i] - pad[i], hi[i] + pad[i], bins + 1) for i in range(2)]
+    counts = {k: np.histogram2d(p[:, 0], p[:, 1], bins=edges)[0] for k, p in points.items()}
+    vmax = max(c.max() for c in counts.values())
+    n = len(points)
+    fig, axes = plt.subplots(1, n, figsize=(3.4 * n + 1.2, 3.4), squeeze=False, sharex=True, sharey=True)
+    mesh = None
+    for ax, (label, c) in zip(axes[0], counts.items()):
+        mesh = ax.pcolormesh(edges[0], edges[1], np.where(c > 0, c, np.nan).T, cmap="viridis",
+                             norm=LogNorm(vmin=1, vmax=max(vmax, 2)))
+        ax.set_title(label, fontsize=10)
+        ax.set_xlabel(entry.projection_labels[0])
+    axes[0][0].set_ylabel(entry.projection_labels[1])
+    fig.suptitle(title, fontsize=11)
+    fig.colorbar(mesh, ax=axes[0].tolist(), label="transitions per cell", fraction=0.04, pad=0.02)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _evals(run: RunDir) -> dict[str, dict]:
+    folder = run.path / "eval"
+    if not folder.exists():
+        return {}
+    return {p.stem: json.loads(p.read_text()) for p in sorted(folder.glob("*.json")) if p.stem != "model_accuracy"}
+
+
+def _success_metric(entry, task: str) -> str | None:
+    t = entry.tasks.get(task.split("@", 1)[0])
+    return None if t is None else t.success_metric
 
 
 def plot_run(run_dir: str | Path) -> list[Path]:
-    """Coverage heatmap, learning curves and task-return curves/bars of one run."""
+    """Coverage heatmap, learning curves and task evaluation of one run."""
     from torchrl_softae.pipeline.catalog import get_env_entry
 
     plt = _plt()
@@ -54,31 +93,22 @@ def plot_run(run_dir: str | Path) -> list[Path]:
     cfg = state["config"]
     entry = get_env_entry(cfg["env"])
     history = state["history"]
-    written = []
-
-    fig = plot_coverage(run, entry)
-    fig.axes[0].set_title(f"{cfg['env']} coverage, {cfg['method']} ({state['num_transitions']} transitions)")
-    out = run.plots / "coverage.png"
-    fig.tight_layout()
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
-    written.append(out)
+    name = f"{cfg['env']} / {cfg['method']} / seed {cfg['seed']}"
+    budget = f"{state['episode'] + 1} episodes, {state['num_transitions']} transitions"
+    written = [_coverage_panels({cfg["method"]: _projected(run, entry)}, entry, f"{name}: coverage ({budget})",
+                                run.plots / "coverage.png")]
 
     ep = [r["episode"] + 1 for r in history]
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
     axes[0].plot(ep, [r["heldout_nmse"] for r in history], "o-")
     axes[0].set_yscale("log")
-    axes[0].set_xlabel("episode")
+    axes[0].set_xlabel("exploration episode")
     axes[0].set_ylabel("held-out normalized MSE")
     axes[1].plot(ep, [r["coverage"] for r in history], "o-", color="C1")
-    axes[1].set_xlabel("episode")
+    axes[1].set_xlabel("exploration episode")
     axes[1].set_ylabel("coverage (fraction of cells)")
-    fig.suptitle(f"{cfg['env']} / {cfg['method']} / seed {cfg['seed']}")
-    fig.tight_layout()
-    out = run.plots / "learning_curves.png"
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
-    written.append(out)
+    fig.suptitle(f"{name} ({budget})")
+    written.append(_save(fig, run.plots / "learning_curves.png"))
 
     curves = sorted({k for r in history for k in r if k.startswith("return/")})
     if curves:
@@ -86,28 +116,30 @@ def plot_run(run_dir: str | Path) -> list[Path]:
         for k in curves:
             pts = [(r["episode"] + 1, r[k]) for r in history if k in r]
             ax.plot(*zip(*pts), "o-", label=k.split("/", 1)[1])
-        ax.set_xlabel("episode")
+        ax.set_xlabel("exploration episode")
         ax.set_ylabel("zero-shot return")
+        ax.set_title(f"{name}: zero-shot return while exploring", fontsize=10)
         ax.legend()
-        fig.tight_layout()
-        out = run.plots / "return_curves.png"
-        fig.savefig(out, dpi=120)
-        plt.close(fig)
-        written.append(out)
+        written.append(_save(fig, run.plots / "return_curves.png"))
 
-    evals = sorted(p for p in (run.path / "eval").glob("*.json") if p.stem != "model_accuracy") if (run.path / "eval").exists() else []
+    evals = _evals(run)
     if evals:
-        fig, ax = plt.subplots(figsize=(5, 3.5))
-        names = [p.stem for p in evals]
-        res = [json.loads(p.read_text())["returns"] for p in evals]
-        ax.bar(names, [np.mean(r) for r in res], yerr=[np.std(r) for r in res], capsize=4)
-        ax.set_ylabel("zero-shot return")
-        ax.set_title("evaluation")
-        fig.tight_layout()
-        out = run.plots / "eval_returns.png"
-        fig.savefig(out, dpi=120)
-        plt.close(fig)
-        written.append(out)
+        metrics = {t: _success_metric(entry, t) for t in evals}
+        with_metric = [t for t in evals if metrics[t] and metrics[t] in (evals[t]["metrics"] or [{}])[0]]
+        ncols = 2 if with_metric else 1
+        fig, axes = plt.subplots(1, ncols, figsize=(4.5 * ncols, 3.6), squeeze=False)
+        names = list(evals)
+        res = [evals[t]["returns"] for t in names]
+        axes[0][0].bar(names, [np.mean(r) for r in res], yerr=[np.std(r) for r in res], capsize=4, color="C2")
+        axes[0][0].set_ylabel(f"zero-shot return (mean +- std over {len(res[0])} episodes)")
+        axes[0][0].tick_params(axis="x", rotation=20)
+        if with_metric:
+            vals = [[m[metrics[t]] for m in evals[t]["metrics"]] for t in with_metric]
+            axes[0][1].bar(with_metric, [np.mean(v) for v in vals], yerr=[np.std(v) for v in vals], capsize=4, color="C4")
+            axes[0][1].set_ylabel(" / ".join(sorted({metrics[t] for t in with_metric})).replace("_", " "))
+            axes[0][1].set_title("success measure", fontsize=10)
+        fig.suptitle(f"{name}: zero-shot evaluation after {budget}", fontsize=10)
+        written.append(_save(fig, run.plots / "eval_returns.png"))
     return written
 
 
@@ -115,78 +147,114 @@ def _runs_below(folder: Path) -> list[RunDir]:
     return sorted((RunDir(p.parent) for p in folder.rglob("checkpoint.pt")), key=lambda r: str(r.path))
 
 
-def plot_comparison(folder: str | Path) -> list[Path]:
-    """Bars of held-out normalized MSE and zero-shot returns per method over the runs below ``folder``,
-    and one coverage heatmap per method (first seed)."""
+def _method_order(methods) -> list[str]:
+    known = [m for m in METHOD_NAMES if m in methods]
+    return known + sorted(set(methods) - set(known))
+
+
+def _load_ok(runs: list[RunDir], warn) -> list[tuple[RunDir, dict]]:
+    """The runs that load; each broken one costs a warning line, not the whole plot."""
+    ok = []
+    for run in runs:
+        try:
+            ok.append((run, run.load()))
+        except CheckpointError as e:
+            warn(f"softae plot: skipping {run.path}: {e}")
+    return ok
+
+
+def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
+    """Per env and budget: bars of held-out normalized MSE and zero-shot returns per method over the
+    seeds, and one coverage heatmap per method (all its seeds' data), below ``folder/plots``."""
     from torchrl_softae.pipeline.catalog import get_env_entry
 
+    warn = warn or (lambda msg: print(msg, file=sys.stderr))
     plt = _plt()
     folder = Path(folder)
-    runs = _runs_below(folder)
-    if not runs:
-        raise FileNotFoundError(f"no run (checkpoint.pt) below {folder}")
-    by_method: dict[str, list] = defaultdict(list)
-    for run in runs:
-        state = run.load()
-        by_method[state["config"]["method"]].append((run, state))
-    methods = sorted(by_method)
+    loaded = _load_ok(_runs_below(folder), warn)
+    if not loaded:
+        raise FileNotFoundError(f"no readable run (checkpoint.pt) below {folder}")
+    groups: dict[tuple, dict[str, list]] = defaultdict(lambda: defaultdict(list))
+    for run, state in loaded:
+        key = (state["config"]["env"], state["episode"] + 1, state["num_transitions"])
+        groups[key][state["config"]["method"]].append((run, state))
+    if len(groups) > 1:
+        warn(f"softae plot: {folder} holds {len(groups)} (env, budget) groups; plotting each on its own, never pooled")
     out_dir = folder / "plots"
     out_dir.mkdir(exist_ok=True)
     written = []
+    for (env, episodes, transitions), by_method in sorted(groups.items()):
+        entry = get_env_entry(env)
+        methods = _method_order(by_method)
+        seeds = sorted({len(by_method[m]) for m in methods})
+        budget = f"{episodes} episodes = {transitions} transitions per run"
+        seed_text = f"{seeds[0]} seeds" if len(seeds) == 1 else f"{min(seeds)}-{max(seeds)} seeds"
+        prefix = f"{env}_{transitions}tr_" if len(groups) > 1 else ""
+        title = f"{env}, {budget}, {seed_text}"
 
-    fig, ax = plt.subplots(figsize=(1.2 * len(methods) + 2, 3.5))
-    vals = [[s["history"][-1]["heldout_nmse"] for _, s in by_method[m]] for m in methods]
-    ax.bar(methods, [np.mean(v) for v in vals], yerr=[np.std(v) for v in vals], capsize=4, color="C0")
-    ax.set_ylabel("held-out normalized MSE")
-    ax.set_yscale("log")
-    fig.tight_layout()
-    out = out_dir / "mse_bars.png"
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
-    written.append(out)
+        fig, ax = plt.subplots(figsize=(1.3 * len(methods) + 2.5, 3.8))
+        vals = [np.array([s["history"][-1]["heldout_nmse"] for _, s in by_method[m]]) for m in methods]
+        means = np.array([v.mean() for v in vals])
+        # min-max whiskers: never below a log axis, unlike mean - std
+        err = np.array([[m - v.min() for m, v in zip(means, vals)], [v.max() - m for m, v in zip(means, vals)]])
+        ax.bar(methods, means, yerr=err, capsize=4, color=[f"C{i}" for i in range(len(methods))])
+        for i, v in enumerate(vals):
+            ax.plot(np.full(len(v), i), v, "k.", ms=4)
+        ax.set_yscale("log")
+        ax.set_ylabel("held-out normalized MSE")
+        ax.set_title(f"{title}\nbar: mean, whiskers: min-max, dots: seeds", fontsize=9)
+        written.append(_save(fig, out_dir / f"{prefix}mse_bars.png"))
 
-    tasks = sorted({p.stem for r in runs if (r.path / "eval").exists() for p in (r.path / "eval").glob("*.json")} - {"model_accuracy"})
-    if tasks:
-        fig, axes = plt.subplots(1, len(tasks), figsize=(3.2 * len(tasks) + 1, 3.5), squeeze=False)
-        for ax, task in zip(axes[0], tasks):
-            means = []
-            for m in methods:
-                rs = [np.mean(json.loads((r.path / "eval" / f"{task}.json").read_text())["returns"])
-                      for r, _ in by_method[m] if (r.path / "eval" / f"{task}.json").exists()]
-                means.append((np.mean(rs) if rs else np.nan, np.std(rs) if rs else 0))
-            ax.bar(methods, [m[0] for m in means], yerr=[m[1] for m in means], capsize=4, color="C2")
-            ax.set_title(task)
-            ax.tick_params(axis="x", rotation=30)
-        axes[0][0].set_ylabel("zero-shot return")
-        fig.tight_layout()
-        out = out_dir / "task_returns.png"
-        fig.savefig(out, dpi=120)
-        plt.close(fig)
-        written.append(out)
+        tasks = sorted({t for m in methods for r, _ in by_method[m] for t in _evals(r)})
+        if tasks:
+            metric_of = {t: _success_metric(entry, t) for t in tasks}
+            rows = 2 if any(metric_of.values()) else 1
+            fig, axes = plt.subplots(rows, len(tasks), figsize=(3.4 * len(tasks) + 1, 3.2 * rows), squeeze=False)
+            for j, task in enumerate(tasks):
+                per_method = {m: [_evals(r)[task] for r, _ in by_method[m] if task in _evals(r)] for m in methods}
+                ret = [[np.mean(e["returns"]) for e in per_method[m]] for m in methods]
+                axes[0][j].bar(methods, [np.mean(r) if r else np.nan for r in ret],
+                               yerr=[np.std(r) if r else 0 for r in ret], capsize=4, color="C2")
+                axes[0][j].set_title(task, fontsize=10)
+                axes[0][j].tick_params(axis="x", rotation=30)
+                if rows == 2:
+                    metric = metric_of[task]
+                    if metric:
+                        vals = [[np.mean([x[metric] for x in e["metrics"]]) for e in per_method[m]] for m in methods]
+                        axes[1][j].bar(methods, [np.mean(v) if v else np.nan for v in vals],
+                                       yerr=[np.std(v) if v else 0 for v in vals], capsize=4, color="C4")
+                        axes[1][j].set_ylabel(metric.replace("_", " "), fontsize=9)
+                        axes[1][j].tick_params(axis="x", rotation=30)
+                    else:
+                        axes[1][j].axis("off")
+            axes[0][0].set_ylabel("zero-shot return\n(mean +- std over seeds)")
+            fig.suptitle(title, fontsize=11)
+            written.append(_save(fig, out_dir / f"{prefix}task_returns.png"))
 
-    entry = get_env_entry(by_method[methods[0]][0][1]["config"]["env"])
-    fig, axes = plt.subplots(1, len(methods), figsize=(3.6 * len(methods), 3.3), squeeze=False, sharex=True, sharey=True)
-    for ax, m in zip(axes[0], methods):
-        run, state = by_method[m][0]
-        plot_coverage(run, entry, ax=ax)
-        ax.set_title(f"{m} (cov. {state['history'][-1]['coverage']:.2f})")
-    fig.tight_layout()
-    out = out_dir / "coverage_by_method.png"
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
-    written.append(out)
+        points = {f"{m} ({len(by_method[m])} seeds, cov. "
+                  f"{np.mean([s['history'][-1]['coverage'] for _, s in by_method[m]]):.2f})":
+                  np.concatenate([_projected(r, entry) for r, _ in by_method[m]]) for m in methods}
+        written.append(_coverage_panels(points, entry, f"coverage by method: {title}",
+                                        out_dir / f"{prefix}coverage_by_method.png"))
     return written
 
 
-def plot_path(path: str | Path) -> list[Path]:
-    """A run dir gets its own plots; a folder of runs gets the comparison plus each run's plots."""
+def plot_path(path: str | Path, warn=None) -> list[Path]:
+    """A run dir gets its own plots; a folder of runs gets the comparison plus each run's plots
+    (a broken run is skipped with a warning line)."""
+    warn = warn or (lambda msg: print(msg, file=sys.stderr))
     path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"--run-dir {path} does not exist")
     if RunDir(path).exists():
         return plot_run(path)
     runs = _runs_below(path)
     if not runs:
         raise FileNotFoundError(f"{path} holds no run: nothing to plot (run `softae explore --run-dir {path}`)")
-    written = plot_comparison(path)
+    written = plot_comparison(path, warn)
     for run in runs:
-        written += plot_run(run.path)
+        try:
+            written += plot_run(run.path)
+        except CheckpointError as e:
+            warn(f"softae plot: skipping {run.path}: {e}")
     return written

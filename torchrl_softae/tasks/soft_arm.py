@@ -6,7 +6,7 @@ import torch
 
 from torchrl_softae.envs.robots.soft_arm import ARM_TARGETS, arm_layout
 from torchrl_softae.tasks.base import Task
-from torchrl_softae.tasks.reach import reach_reward
+from torchrl_softae.envs.robots.reach import reach_reward
 
 __all__ = ["tip_position", "reach_task", "tasks"]
 
@@ -17,7 +17,7 @@ def tip_position(observation: torch.Tensor, points: int) -> torch.Tensor:
 
 
 def reach_task(name: str, target, points: int, horizon: int = 200) -> Task:
-    """Reward g(||p_tip - p_target||) in (0, 1] (see :func:`~torchrl_softae.tasks.reach.reach_reward`)."""
+    """Reward g(||p_tip - p_target||) in (0, 1] (see :func:`~torchrl_softae.envs.robots.reach.reach_reward`)."""
     target_t = torch.as_tensor(np.asarray(target), dtype=torch.float32)
 
     def reward(obs, action, next_obs):

@@ -6,7 +6,7 @@ import torch
 
 from torchrl_softae.envs.robots.sopra.env import SOPRA_TARGETS
 from torchrl_softae.tasks.base import Task
-from torchrl_softae.tasks.reach import reach_reward
+from torchrl_softae.envs.robots.reach import reach_reward
 
 __all__ = ["sopra_reach_task", "tasks"]
 

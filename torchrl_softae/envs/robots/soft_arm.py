@@ -23,7 +23,7 @@ import numpy as np
 from gymnasium import spaces
 
 from torchrl_softae.envs.robots.rotations import rotation_to_quaternion
-from torchrl_softae.tasks.reach import reach_reward
+from torchrl_softae.envs.robots.reach import reach_reward
 
 __all__ = ["SoftArmEnv", "reach_reward", "ARM_TARGETS", "arm_layout"]
 

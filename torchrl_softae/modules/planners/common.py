@@ -2,7 +2,7 @@
 input validation and the planner's own generator, all on the env's device.
 
 Scoring goes through one path (:meth:`SequencePlannerBase.evaluate`): the env's
-:meth:`~torchrl_softae.envs.common.ActionSequenceEvaluator.evaluate_action_sequences` when the
+:meth:`~torchrl_softae.modules.planners.contract.ActionSequenceEvaluator.evaluate_action_sequences` when the
 (base) env offers the contract, TorchRL's generic ``env.rollout`` otherwise. Subclasses write
 ``planning()``, like TorchRL's ``MPCPlannerBase`` subclasses.
 """
@@ -17,7 +17,7 @@ from torchrl.data import Bounded
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.modules.planners.common import MPCPlannerBase
 
-from torchrl_softae.envs.common import PLANNING_PRECISIONS, ActionSequenceEvaluator, rollout_returns
+from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS, ActionSequenceEvaluator, rollout_returns
 
 __all__ = ["SequencePlannerBase", "check_positive_int"]
 
@@ -34,7 +34,7 @@ class SequencePlannerBase(MPCPlannerBase):
         env (EnvBase): a batch-unlocked env to plan in (a model env, possibly behind transforms).
         planning_horizon (int): H.
         num_particles (int): rollouts per candidate whose returns are averaged; an
-            :class:`~torchrl_softae.envs.common.ActionSequenceEvaluator` env may need fewer
+            :class:`~torchrl_softae.modules.planners.contract.ActionSequenceEvaluator` env may need fewer
             (one when its propagation is deterministic) unless ``deduplicate_particles=False``.
         precision (str): ``"fp32"``, ``"bf16"`` or ``"auto"``, passed to the env's evaluator.
         deduplicate_particles (bool): let the env evaluate one particle when they would be identical.

@@ -36,7 +36,7 @@ class ICEMPlanner(SequencePlannerBase):
         env (EnvBase): a batch-unlocked env to plan in, typically
             ``TransformedEnv(EnsembleModelEnv(...), Compose(HallucinatedControl(), UncertaintyReward()))``.
             Candidates are scored by the env's ``evaluate_action_sequences`` when it offers the
-            :class:`~torchrl_softae.envs.common.ActionSequenceEvaluator` contract, by TorchRL's
+            :class:`~torchrl_softae.modules.planners.contract.ActionSequenceEvaluator` contract, by TorchRL's
             ``env.rollout`` otherwise.
         planning_horizon (int): H. Default 10.
         optim_steps (int): CEM iterations. Default 5.

@@ -255,7 +255,7 @@ class SoPrAEnv(EnvBase):
         self._last_obs = obs
         reward = 0.0
         if self.task is not None and not fault:
-            from torchrl_softae.tasks.reach import reach_reward
+            from torchrl_softae.envs.robots.reach import reach_reward
 
             reward = float(reach_reward(np.linalg.norm(obs[0:3] - self.target)))
         self._last_wall = time.perf_counter()

@@ -1,5 +1,8 @@
 """The planner/model-env contract: how an env scores whole action sequences for a planner.
 
+It lives with the planners (what they need from an env); the model env implements it
+(``torchrl_softae.envs.EnsembleModelEnv``), so the dependency runs one way: envs -> modules.
+
 A planner (:class:`~torchrl_softae.modules.planners.ICEMPlanner`, ``MPPIPlanner``) never reaches
 into a model env's attributes. If the env it plans in (or, behind TorchRL transforms, the base
 env) is an :class:`ActionSequenceEvaluator`, the planner asks it, and only it, for

@@ -1,5 +1,5 @@
-"""The reaching reward shared by the arms' tasks (Table S5: a long-tailed shaped function of the
-tip-to-target distance; its exact form is ours, the paper does not give it)."""
+"""The reaching reward of both arms (SoftArm, SoPrA) and their tasks (Table S5: a long-tailed shaped
+function of the tip-to-target distance; its exact form is ours, the paper does not give it)."""
 from __future__ import annotations
 
 import numpy as np
