@@ -234,7 +234,10 @@ class ModbusMap:
 
 
 class ModbusValveArray:
-    """Six proportional pressure valves over Modbus TCP (``pymodbus``)."""
+    """Six proportional pressure valves over Modbus TCP (``pymodbus``).
+
+    Every read and write is bounded by the map's ``timeout`` (one retry): a device that stops
+    answering raises (``ModbusIOException``) instead of hanging the control loop."""
 
     def __init__(self, config: ModbusMap | str | Path):
         try:
@@ -242,9 +245,10 @@ class ModbusValveArray:
         except ImportError as e:
             raise ImportError("ModbusValveArray needs pymodbus: pip install 'torchrl-softae[sopra]'") from e
         self.map = config if isinstance(config, ModbusMap) else ModbusMap.from_file(config)
-        self.client = ModbusTcpClient(self.map.host, port=self.map.port, timeout=self.map.timeout, retries=1)
-        if not self.client.connect():
-            raise ConnectionError(f"no Modbus TCP server at {self.map.host}:{self.map.port}")
+        if not (self.map.timeout > 0 and np.isfinite(self.map.timeout)):
+            raise ValueError(f"ModbusValveArray: timeout={self.map.timeout!r} s, expected a finite value > 0")
+        del ModbusTcpClient  # imported above only to fail early with the install hint
+        self.client = self._connect()
 
     def _check(self, result, what: str):
         if result.isError():
@@ -266,8 +270,23 @@ class ModbusValveArray:
         r = self._check(read(self.map.measured_register, count=N_CHAMBERS, device_id=self.map.device_id), "read pressures")
         return np.asarray(r.registers, dtype=np.float64) * self.map.mbar_per_count
 
+    def _connect(self):
+        from pymodbus.client import ModbusTcpClient
+
+        client = ModbusTcpClient(self.map.host, port=self.map.port, timeout=self.map.timeout, retries=1)
+        if not client.connect():
+            raise ConnectionError(f"no Modbus TCP server at {self.map.host}:{self.map.port}")
+        return client
+
     def vent(self) -> None:
-        self.send_pressures(np.zeros(N_CHAMBERS))
+        """Zero every setpoint; if the connection does not answer (within the timeout), try once more
+        on a fresh connection. Raises when both fail (the safety layer logs it loudly)."""
+        try:
+            self.send_pressures(np.zeros(N_CHAMBERS))
+        except Exception:  # noqa: BLE001
+            self.client.close()
+            self.client = self._connect()
+            self.send_pressures(np.zeros(N_CHAMBERS))
 
     def close(self) -> None:
         self.client.close()

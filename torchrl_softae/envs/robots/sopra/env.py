@@ -76,13 +76,20 @@ class SoPrAEnv(EnvBase):
         task: ``"reach-close"`` (ix), ``"reach-far"`` (x), ``"reach-random"`` or ``None``.
         max_steps (int): truncation. Default 200 (exploration; tasks use 20).
         velocity_filter (float): exponential smoothing of finite-difference velocities (0 = none).
+        watchdog (bool, optional): the safety layer's dead-man's switch (vent when no command
+            arrives within ``limits.watchdog_periods`` control periods of wall-clock time, or when
+            motion capture stops). Default: on for hardware, off for the twin, whose simulated
+            time stands still while the controller thinks.
+
+    Every episode ends vented (terminal or truncated, before ``step`` returns); a fault latches
+    the safety layer until the next ``reset`` vents, settles and re-arms it.
     """
 
     def __init__(self, backend="sim", *, limits: SafetyLimits | None = None, control_period: float = 0.1,
                  max_step: float | None = None, dry_run: bool = False, task: str | None = None, target=None,
                  max_steps: int = 200, velocity_filter: float = 0.5, settle_speed: float = 0.01,
                  settle_timeout: float = 10.0, seed: int = 0, qualisys: dict | None = None, modbus=None,
-                 twin_params=None, install_signal_handlers: bool = True):
+                 twin_params=None, install_signal_handlers: bool = True, watchdog: bool | None = None):
         super().__init__(batch_size=[])
         if task not in (None, "reach-close", "reach-far", "reach-random"):
             raise ValueError(f"SoPrAEnv: task={task!r}; valid: reach-close, reach-far, reach-random, None")
@@ -111,7 +118,9 @@ class SoPrAEnv(EnvBase):
         self.mocap, self.clock = mocap, clock
         self.mocap.start()
         self.safety = SafetyLayer(valves, self.limits, control_period, dry_run=dry_run,
-                                  install_handlers=install_signal_handlers)
+                                  install_handlers=install_signal_handlers,
+                                  watchdog=(backend != "sim") if watchdog is None else bool(watchdog),
+                                  frame_source=self.mocap.latest)
         self._fixed_target = None if target is None else np.asarray(target, dtype=np.float64)
         self.target = self._task_target()
         self.observation_spec = Composite(
@@ -170,7 +179,10 @@ class SoPrAEnv(EnvBase):
                                vel["mid"][0], vel["mid"][1], self.safety.last_command / self.limits.p_max]).astype(np.float32)
 
     def _read(self):
-        number, poses = self.mocap.latest()
+        try:
+            number, poses = self.mocap.latest()
+        except Exception as e:  # noqa: BLE001
+            self.safety.fault(f"motion capture raised {type(e).__name__}: {e}")
         now = self.clock.now()
         tip_rel = None
         if number >= 0 and all(p.valid for p in poses.values()) and self._base_ref is not None:
@@ -211,7 +223,7 @@ class SoPrAEnv(EnvBase):
                 prev = tip
                 if self.clock.now() - t0 > self.settle_timeout:
                     raise TimeoutError(f"SoPrA did not settle below {self.settle_speed} m/s within {self.settle_timeout} s")
-        self.safety.reset_watchdog()
+        self.safety.rearm()  # vented and settled: commands are accepted again
         if self.task == "reach-random" and self._fixed_target is None:
             self.target = self.sample_target()
         # wait (up to ~one control period x stale factor) for a complete frame to re-zero on
@@ -235,7 +247,6 @@ class SoPrAEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         from torchrl_softae.envs.robots.checks import check_action
 
-        action = check_action("SoPrAEnv", tensordict.get("action").detach().cpu().numpy(), N_CHAMBERS)
         wall = time.perf_counter()
         overrun = self._last_wall is not None and wall - self._last_wall > self.control_period
         self.timing["periods"].append(wall - self._last_wall if self._last_wall is not None else float("nan"))
@@ -244,6 +255,10 @@ class SoPrAEnv(EnvBase):
         self._steps += 1
         fault = False
         try:
+            try:
+                action = check_action("SoPrAEnv", tensordict.get("action").detach().cpu().numpy(), N_CHAMBERS)
+            except ValueError as e:  # a controller that emits garbage is a fault, not a crash mid-episode
+                self.safety.fault(str(e))
             self.safety.command(self.safety.last_command + self.max_step * action)
             self._tick += self.control_period
             self.clock.sleep_until(self._tick)
@@ -252,14 +267,19 @@ class SoPrAEnv(EnvBase):
             obs = self._state(rel, self._velocities(rel))
         except SafetyFault:
             fault, obs = True, self._last_obs
+        if self.safety.latched is not None:  # the watchdog tripped meanwhile: this step reports it
+            fault = True
         self._last_obs = obs
         reward = 0.0
         if self.task is not None and not fault:
             from torchrl_softae.envs.robots.reach import reach_reward
 
             reward = float(reach_reward(np.linalg.norm(obs[0:3] - self.target)))
+        truncated = self._steps >= self.max_steps
+        if fault or truncated:
+            self.safety.end_episode()  # vented before control returns: retraining never runs pressurized
         self._last_wall = time.perf_counter()
-        return self._td(obs, reward, done=fault, overrun=overrun, fault=fault, truncated=self._steps >= self.max_steps)
+        return self._td(obs, reward, done=fault, overrun=overrun, fault=fault, truncated=truncated)
 
     def sample_target(self) -> np.ndarray:
         """A reachable target: the twin's settled tip under random pressures within the cap."""
