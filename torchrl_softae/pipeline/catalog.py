@@ -31,6 +31,9 @@ class EnvEntry:
         heldout: ``(n, seed) -> transitions`` held-out set (``observation``, ``action``,
             ``("next", "observation")``) from a data source that does not use explored data.
         defaults: nested overrides of :class:`~torchrl_softae.pipeline.config.ExploreConfig` (paper values per env).
+        reference: ``(n, seed) -> transitions``, as many added to the held-out set to form the
+            fixed reference set whose per-dimension std normalizes the model error (default:
+            none, the held-out set alone).
     """
 
     env_id: str
@@ -44,6 +47,7 @@ class EnvEntry:
     projection_keys: tuple = ("observation",)
     version: str = "1"  # bump when the physics changes: keys the held-out cache
     accuracy_groups: dict = field(default_factory=dict)  # extra normalized-MSE reports, name -> dims
+    reference: Callable[[int, int], TensorDictBase] | None = None  # extra broad transitions for the metric's scale
 
     def project(self, data) -> torch.Tensor:
         """``data`` (a tensordict of transitions) -> ``(N, 2)`` coverage coordinates."""

@@ -130,7 +130,7 @@ def cmd_evaluate(args) -> int:
     for name, r in res["tasks"].items():
         extra = ""
         if r["metrics"] and r["metrics"][0]:
-            keys = r["metrics"][0].keys()
+            keys = [k for k, v in r["metrics"][0].items() if isinstance(v, (int, float))]
             extra = "  " + ", ".join(f"{k}={sum(m[k] for m in r['metrics']) / len(r['metrics']):.3g}" for k in keys)
         print(f"  {name:>12}: mean return {r['mean_return']:.4g} over {len(r['returns'])} episodes{extra}")
     return 0

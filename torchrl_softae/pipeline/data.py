@@ -16,7 +16,8 @@ from torchrl_softae.modules import EnsembleWorldModel
 from torchrl_softae.pipeline.catalog import EnvEntry
 from torchrl_softae.pipeline.runs import RunDir, atomic_torch_save
 
-__all__ = ["make_real_env", "episode_seed", "seed_everything", "heldout_set", "normalized_mse", "coverage"]
+__all__ = ["make_real_env", "episode_seed", "seed_everything", "heldout_set", "reference_set", "reference_scale",
+           "normalized_mse", "trivial_nmse", "legacy_normalized_mse", "coverage", "ModelAccuracy"]
 
 
 def make_real_env(entry: EnvEntry, max_steps: int) -> EnvBase:
@@ -40,39 +41,95 @@ def _cache_dir() -> Path:
     return Path(root)
 
 
-def heldout_set(entry: EnvEntry, run: RunDir | None, size: int, seed: int = 12345) -> TensorDictBase:
-    """The env's held-out transitions: cached in the run dir and in a per-user cache
-    (``$TORCHRL_SOFTAE_CACHE``, default ``~/.cache/torchrl_softae``), since simulators are slow."""
-    if run is not None and run.heldout_path.exists():
-        td = torch.load(run.heldout_path, weights_only=False)
-        if td.shape[0] == size:
-            return td
-    cached = _cache_dir() / "heldout" / f"{entry.env_id}-v{entry.version}-{size}-{seed}.pt"
+def _cached(entry: EnvEntry, kind: str, make, size: int, seed: int, run: RunDir | None) -> TensorDictBase:
+    """``make(size, seed)``, cached in the run dir and in a per-user cache (``$TORCHRL_SOFTAE_CACHE``,
+    default ``~/.cache/torchrl_softae``), keyed by env, physics version, size and seed: simulators
+    are slow, and runs of another physics version never share a set."""
+    name = f"{entry.env_id}-v{entry.version}-{kind}-{size}-{seed}.pt"
+    local = None if run is None else run.path / name
+    if local is not None and local.exists():
+        return torch.load(local, weights_only=False)
+    cached = _cache_dir() / kind / name
     if cached.exists():
         td = torch.load(cached, weights_only=False)
     else:
-        td = entry.heldout(size, seed)
+        td = make(size, seed)
         cached.parent.mkdir(parents=True, exist_ok=True)
         atomic_torch_save(td, cached)
-    if run is not None:
-        atomic_torch_save(td, run.heldout_path)
+    if local is not None:
+        atomic_torch_save(td, local)
     return td
 
 
+def heldout_set(entry: EnvEntry, run: RunDir | None, size: int, seed: int = 12345) -> TensorDictBase:
+    """The env's held-out transitions (``entry.heldout``), cached."""
+    return _cached(entry, "heldout", entry.heldout, size, seed, run)
+
+
+def reference_set(entry: EnvEntry, run: RunDir | None, heldout: TensorDictBase, seed: int = 54321) -> TensorDictBase:
+    """The fixed, broad set whose per-dimension std normalizes the model error: the held-out set,
+    plus as many of the env's extra reference transitions where it has some (the arm: i.i.d.
+    random-action motion, so that dimensions the reaching rollouts barely move -- twist, axial
+    velocity -- are not divided by ~0, while the positions keep the workspace's spread)."""
+    if entry.reference is None:
+        return heldout
+    extra = _cached(entry, "reference", entry.reference, heldout.shape[0], seed, run)[: heldout.shape[0]]
+    keys = ["observation", "action", ("next", "observation")]
+    return torch.cat([heldout.select(*keys), extra.select(*keys)], 0)
+
+
+def reference_scale(reference: TensorDictBase, eps: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(mean, std, kept)`` of the reference next states: population statistics per dimension,
+    ``kept`` excludes the constant dimensions (std <= eps), which carry no information."""
+    nxt = reference["next", "observation"]
+    std = nxt.std(0, unbiased=False)
+    return nxt.mean(0), std, std > eps
+
+
+def _nmse_report(pred: torch.Tensor, heldout: TensorDictBase, scale, groups: dict | None):
+    mean, std, kept = (x.to(pred.device) for x in scale)
+    nxt = heldout["next", "observation"]
+    per_dim = ((pred - nxt) / torch.where(kept, std, torch.ones_like(std))).square().mean(0)
+    overall = float(per_dim[kept].mean())
+    if groups is None:
+        return overall
+    out = {}
+    for name, dims in groups.items():
+        dims = torch.as_tensor(dims, device=per_dim.device)
+        dims = dims[kept[dims]]
+        out[name] = float(per_dim[dims].mean()) if dims.numel() else float("nan")
+    return overall, out
+
+
 @torch.no_grad()
-def normalized_mse(model: EnsembleWorldModel, heldout: TensorDictBase, groups: dict | None = None):
-    """Next-state MSE of the ensemble mean, each dimension divided by its std over the held-out set
-    (a constant dimension counts in its own units). With ``groups`` (name -> dims), returns
-    ``(overall, {name: nmse over those dims})``."""
+def normalized_mse(model: EnsembleWorldModel, heldout: TensorDictBase, groups: dict | None = None, scale=None):
+    """Held-out next-state MSE of the ensemble mean, per dimension divided by the variance of a
+    fixed reference set (``scale`` from :func:`reference_scale`; default the held-out set itself),
+    constant dimensions excluded, averaged over dimensions. With ``groups`` (name -> dims), returns
+    ``(overall, {name: nmse over those dims})``. Predicting the reference mean on the reference set
+    scores 1.0."""
+    heldout = heldout.to(model.input_normalizer.loc.device)
+    mu, *_ = model.predict(heldout["observation"], heldout["action"])
+    return _nmse_report(mu, heldout, scale if scale is not None else reference_scale(heldout), groups)
+
+
+def trivial_nmse(heldout: TensorDictBase, scale, groups: dict | None = None) -> dict:
+    """The same metric for two predictors that know nothing: ``s' = s`` and the reference mean."""
+    obs = heldout["observation"]
+    mean = scale[0].to(obs.device).expand_as(obs)
+    return {"identity": _nmse_report(obs, heldout, scale, groups), "mean": _nmse_report(mean, heldout, scale, groups)}
+
+
+@torch.no_grad()
+def legacy_normalized_mse(model: EnsembleWorldModel, heldout: TensorDictBase) -> float:
+    """The metric before the reference set (kept so old numbers stay comparable): each dimension
+    divided by its own sample std over the held-out set, a constant dimension in its own units."""
     heldout = heldout.to(model.input_normalizer.loc.device)
     obs, act, nxt = heldout["observation"], heldout["action"], heldout["next", "observation"]
     mu, *_ = model.predict(obs, act)
     std = nxt.std(0)
     std = torch.where(std > 1e-8, std, torch.ones_like(std))
-    per_dim = ((mu - nxt) / std).square().mean(0)
-    if groups is None:
-        return float(per_dim.mean())
-    return float(per_dim.mean()), {k: float(per_dim[v].mean()) for k, v in groups.items()}
+    return float(((mu - nxt) / std).square().mean())
 
 
 def coverage(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: int = 20) -> float:
@@ -85,3 +142,24 @@ def coverage(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: 
     idx = ((p - lo) / (hi - lo) * bins).floor().clamp(0, bins - 1).long()
     cells = torch.unique(idx[:, 0] * bins + idx[:, 1])
     return cells.numel() / bins**2
+
+
+class ModelAccuracy:
+    """The held-out metric of one env, set up once per run: ``accuracy(model)`` returns the row
+    ``{"heldout_nmse": ..., "heldout_nmse/GROUP": ..., "heldout_nmse_legacy": ...}``;
+    :attr:`baselines` holds the same metric for ``s' = s`` and the reference mean."""
+
+    def __init__(self, entry: EnvEntry, run: RunDir | None, size: int):
+        self.entry = entry
+        self.heldout = heldout_set(entry, run, size)
+        self.scale = reference_scale(reference_set(entry, run, self.heldout))
+        self.groups = entry.accuracy_groups
+        self.baselines = {}
+        for name, (overall, groups) in trivial_nmse(self.heldout, self.scale, self.groups).items():
+            self.baselines[f"heldout_nmse_{name}"] = overall
+            self.baselines.update({f"heldout_nmse_{name}/{k}": v for k, v in groups.items()})
+
+    def __call__(self, model: EnsembleWorldModel) -> dict:
+        overall, groups = normalized_mse(model, self.heldout, self.groups, self.scale)
+        return {"heldout_nmse": overall, **{f"heldout_nmse/{k}": v for k, v in groups.items()},
+                "heldout_nmse_legacy": legacy_normalized_mse(model, self.heldout)}

@@ -11,7 +11,7 @@ from torchrl_softae.modules import EnsembleWorldModel
 from torchrl_softae.pipeline.builders import build_planner_policy, build_world_model
 from torchrl_softae.pipeline.catalog import get_env_entry
 from torchrl_softae.pipeline.config import ConfigError, ExploreConfig, apply_overrides
-from torchrl_softae.pipeline.data import episode_seed, heldout_set, make_real_env, normalized_mse, seed_everything
+from torchrl_softae.pipeline.data import ModelAccuracy, episode_seed, make_real_env, seed_everything
 from torchrl_softae.pipeline.runs import CheckpointError, RunDir
 from torchrl_softae.tasks.base import Task, TaskReward
 
@@ -38,22 +38,26 @@ def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, di
 
 
 def _task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for) -> dict:
-    """Roll out ``policy_for(env, episode_seed)`` for ``episodes`` seeded episodes of ``task`` on the
-    real env with the task's reward: ``{"returns": [...], "metrics": [{...}, ...]}``.
+    """Roll out ``policy_for(env, episode_seed, episode_task)`` for ``episodes`` seeded episodes of
+    ``task`` on the real env with the task's reward: ``{"returns": [...], "metrics": [{...}, ...]}``.
 
     The one place that fixes the evaluation episodes: zero-shot controllers and the model-free
-    references see the same initial states."""
+    references see the same initial states (and, for a task family, the same targets)."""
     real = make_real_env(get_env_entry(env), task.horizon)
-    real.append_transform(TaskReward(task))
+    reward = TaskReward(task)
+    real.append_transform(reward)
     returns, metrics = [], []
     for i in range(episodes):
         s = episode_seed(seed, i)
         seed_everything(s)
-        policy = policy_for(real, s)
+        reward.task = episode_task = task.for_episode(s)
+        policy = policy_for(real, s, episode_task)
         real.set_seed(s)
         traj = real.rollout(task.horizon, policy, break_when_any_done=True)
         returns.append(float(traj["next", "reward"].sum()))
-        metrics.append(task.metrics(traj))
+        metrics.append(episode_task.metrics(traj))
+        if episode_task is not task:
+            metrics[-1].update({f"target_{k}": v for k, v in episode_task.params.items()})
     real.close()
     return {"returns": returns, "metrics": metrics}
 
@@ -89,8 +93,8 @@ def zero_shot(
 
         bar = tqdm(total=episodes * task.horizon, desc=f"zero-shot {task.name}", unit="step", leave=False)
 
-    def planner(real, s):
-        return task_policy(cfg, model, task, real.action_spec, propagation, seed=s, progress=bar)
+    def planner(real, s, episode_task):
+        return task_policy(cfg, model, episode_task, real.action_spec, propagation, seed=s, progress=bar)
 
     res = _task_rollouts(cfg.env, task, episodes, seed, planner)
     if bar is not None:
@@ -112,7 +116,7 @@ def reference_returns(env: str, task: str, policy: str = "random", episodes: int
     if task not in entry.tasks:
         raise ConfigError(f"unknown task {task!r} for env {env!r}; valid tasks: {', '.join(sorted(entry.tasks))}")
 
-    def reference_policy(real, s):
+    def reference_policy(real, s, episode_task):
         if policy == "random":
             return None  # TorchRL's rollout samples from the action spec
         spec = real.action_spec
@@ -146,9 +150,9 @@ def evaluate_run(
             raise ConfigError(f"unknown task {name!r} for env {cfg.env!r}; valid tasks: {', '.join(sorted(entry.tasks))}")
     out = {"env": cfg.env, "method": cfg.method, "seed": cfg.seed, "episodes_explored": state["episode"] + 1,
            "transitions": state["num_transitions"]}
-    heldout = heldout_set(entry, run, cfg.heldout_size)
-    out["heldout_nmse"], groups = normalized_mse(model, heldout, entry.accuracy_groups)
-    out.update({f"heldout_nmse/{k}": v for k, v in groups.items()})
+    accuracy = ModelAccuracy(entry, run, cfg.heldout_size)
+    out.update(accuracy(model))
+    out.update(accuracy.baselines)
     run.write_json(run.eval_dir / "model_accuracy.json", dict(out))
     out["tasks"] = {}
     for name in names:

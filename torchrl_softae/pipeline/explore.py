@@ -24,7 +24,8 @@ from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 from torchrl_softae.pipeline.builders import build_exploration_policy, build_world_model
 from torchrl_softae.pipeline.catalog import get_env_entry
 from torchrl_softae.pipeline.config import ConfigError, ExploreConfig
-from torchrl_softae.pipeline.data import coverage, episode_seed, heldout_set, make_real_env, normalized_mse, seed_everything
+from torchrl_softae.pipeline.data import (ModelAccuracy, coverage, episode_seed, heldout_set, make_real_env,
+                                          normalized_mse, seed_everything)
 from torchrl_softae.pipeline.evaluate import zero_shot
 from torchrl_softae.pipeline.runs import CheckpointError, RunDir
 
@@ -134,8 +135,8 @@ class Explorer:
                 (self.echo or print)(what)
         else:
             rb = self.run.new_replay_buffer(capacity)
-        heldout = heldout_set(self.entry, self.run, cfg.heldout_size)
-        bounds = self._projection_bounds(heldout)
+        accuracy = ModelAccuracy(self.entry, self.run, cfg.heldout_size)
+        bounds = self._projection_bounds(accuracy.heldout)
         logger = self._logger(wandb_id)
 
         bar = None
@@ -144,7 +145,7 @@ class Explorer:
 
             bar = tqdm(total=cfg.episodes, initial=start, desc=f"explore {cfg.env} [{cfg.method}]", unit="episode")
         for n in range(start, cfg.episodes):
-            row = self._episode(n, env, model, trainer, rb, heldout, bounds)
+            row = self._episode(n, env, model, trainer, rb, accuracy, bounds)
             history.append(row)
             # No RNG state: every episode reseeds from (seed, episode), so a resumed run draws the
             # same numbers as an uninterrupted one.
@@ -181,7 +182,7 @@ class Explorer:
         return torch.stack([lo - pad, hi + pad])
 
     # ------------------------------------------------------------------ one episode
-    def _episode(self, n, env, model, trainer, rb, heldout, bounds) -> dict:
+    def _episode(self, n, env, model, trainer, rb, accuracy, bounds) -> dict:
         cfg = self.cfg
         s = episode_seed(cfg.seed, n)
         seed_everything(s)
@@ -217,7 +218,6 @@ class Explorer:
         t_train = time.perf_counter() - t1
 
         stored = rb.storage[: len(rb)]
-        nmse, groups = normalized_mse(model, heldout, self.entry.accuracy_groups)
         row = {
             "episode": n,
             "transitions": len(rb),
@@ -228,10 +228,9 @@ class Explorer:
             "train_loss": report.train_loss[-1] if report.train_loss else float("nan"),
             "val_mse": report.final_val_mse,
             "grad_steps": report.grad_steps,
-            "heldout_nmse": nmse,
             "coverage": coverage(self.entry, stored, bounds),
             "episode_env_reward": float(data["next", "reward"].sum()),
-            **{f"heldout_nmse/{k}": v for k, v in groups.items()},
+            **accuracy(model),
         }
         if cfg.eval_every and ((n + 1) % cfg.eval_every == 0 or n + 1 == cfg.episodes):
             for name, task in self.entry.tasks.items():

@@ -29,6 +29,8 @@ class Task:
         params: task parameters worth recording (e.g. the target).
         success_metric: the key of ``metrics_fn``'s output that says whether the task was solved
             (shown next to the return in reports), if any.
+        instantiate: for a family of tasks (e.g. "reach any target"), ``seed -> Task``: the
+            concrete task of one evaluation episode.
     """
 
     name: str
@@ -38,12 +40,17 @@ class Task:
     description: str = ""
     params: dict = field(default_factory=dict)
     success_metric: str | None = None
+    instantiate: Callable[[int], "Task"] | None = None
 
     def reward(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor) -> torch.Tensor:
         r = self.reward_fn(observation, action, next_observation)
         if r.shape == observation.shape[:-1]:
             r = r.unsqueeze(-1)
         return r
+
+    def for_episode(self, seed: int) -> "Task":
+        """The concrete task of the evaluation episode with ``seed`` (itself unless a family)."""
+        return self if self.instantiate is None else self.instantiate(seed)
 
     def metrics(self, trajectory: TensorDictBase) -> dict:
         return {} if self.metrics_fn is None else dict(self.metrics_fn(trajectory))

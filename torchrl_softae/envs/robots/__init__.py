@@ -38,6 +38,12 @@ class EnvRecord:
 ENVS: tuple[EnvRecord, ...] = (
     EnvRecord("SoftArm-v0", "soft_arm", "torchrl_softae.envs.robots.soft_arm:SoftArmEnv", {"observed_points": 5}, 200),
     EnvRecord("SoftArm136-v0", "soft_arm", "torchrl_softae.envs.robots.soft_arm:SoftArmEnv", {"observed_points": 11}, 200),
+    # v1: 100 ms control period (H = 10 spans the step response), targets (ii) that need coordinated
+    # bending, reach-any, and the workspace-volume held-out set
+    EnvRecord("SoftArm-v1", "soft_arm", "torchrl_softae.envs.robots.soft_arm:SoftArmEnv",
+              {"observed_points": 5, "control_period": 0.1, "target_set": "v1"}, 200),
+    EnvRecord("SoftArm136-v1", "soft_arm", "torchrl_softae.envs.robots.soft_arm:SoftArmEnv",
+              {"observed_points": 11, "control_period": 0.1, "target_set": "v1"}, 200),
     EnvRecord("SoftFish-v0", "fish", "torchrl_softae.envs.robots.fish:SoftFishEnv", {"with_target": False}, 200),
     EnvRecord("SoftFishTarget-v0", "fish", "torchrl_softae.envs.robots.fish:SoftFishEnv", {"with_target": True}, 200),
     EnvRecord("MSKLeg-v0", "leg", "torchrl_softae.envs.robots.msk_leg:MSKLegEnv", {}, 500),

@@ -25,7 +25,7 @@ from gymnasium import spaces
 from torchrl_softae.envs.robots.rotations import rotation_to_quaternion
 from torchrl_softae.envs.robots.reach import reach_reward
 
-__all__ = ["SoftArmEnv", "reach_reward", "ARM_TARGETS", "arm_layout"]
+__all__ = ["SoftArmEnv", "reach_reward", "ARM_TARGETS", "ARM_TARGETS_V1", "arm_layout", "step_response"]
 
 
 def arm_layout(points: int) -> dict[str, slice]:
@@ -52,6 +52,21 @@ ARM_TARGET_ACTIONS = {
     "reach-far": np.r_[-0.6 * np.ones(6), 0.9 * np.ones(6)],
 }
 
+# SoftArm-v1 (100 ms control period). (i) is v0's close target (0.29 m from the rest tip). (ii) is
+# 0.62 m from the rest tip, 6 cm away from every tip a uniform bending profile can hold (any
+# constant curvature in any direction): reaching it needs the base and the tip bent differently
+# (normal -0.285 on the lower half, +0.89 on the upper; binormal 0.625 / 0.959). Settled tips of
+# these actions after 40 control steps, checked in the tests.
+ARM_TARGETS_V1 = {
+    "reach-close": np.array([0.2818, 0.0, 0.9434]),
+    "reach-far": np.array([0.5305, -0.0473, 0.6849]),
+}
+ARM_TARGET_ACTIONS_V1 = {
+    "reach-close": np.r_[np.zeros(6), 0.3 * np.ones(6)],
+    "reach-far": np.r_[np.full(3, -0.285), np.full(3, 0.89), np.full(3, 0.625), np.full(3, 0.959)],
+}
+TARGET_SETS = {"v0": ARM_TARGETS, "v1": ARM_TARGETS_V1}
+
 
 def _spline_basis(n_interfaces: int, n_control: int = 6) -> np.ndarray:
     """(n_interfaces, n_control) matrix mapping control-point values to the torque profile:
@@ -77,6 +92,11 @@ class SoftArmEnv(gym.Env):
         n_elements (int): internal elements (a multiple of ``observed_points - 1``). Default 20.
         max_episode_steps (int): truncation. Default 200.
         divergence_velocity (float): speed [m/s] above which the rod counts as diverged.
+        control_period (float): seconds per step (a multiple of the 0.2 ms integration step).
+            Default 0.02 (``SoftArm-v0``); ``SoftArm-v1`` uses 0.1, where a full-torque step
+            rises (10-90 %) in 9 control steps and settles (5 %) in 12, so the paper's H = 10
+            looks across the arm's response (0.02 s: 45 / 58 steps).
+        target_set (str): ``"v0"`` or ``"v1"`` targets of tasks (i) and (ii).
 
     ``info`` holds ``tip`` (position), ``distance`` to the target, and ``diverged`` (bool).
     """
@@ -84,7 +104,6 @@ class SoftArmEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
 
     dt = 2e-4
-    substeps = 100  # control period 20 ms
     damping = 5.0  # [1/s]
     filter_order = 4
     activation_tau = 0.05  # [s] torque build-up of the actuators
@@ -100,7 +119,15 @@ class SoftArmEnv(gym.Env):
         max_episode_steps: int = 200,
         divergence_velocity: float = 50.0,
         render_mode: str | None = None,
+        control_period: float = 0.02,
+        target_set: str = "v0",
     ):
+        substeps = int(round(control_period / self.dt))
+        if substeps < 1 or abs(substeps * self.dt - control_period) > 1e-9:
+            raise ValueError(f"SoftArmEnv: control_period={control_period!r} s, expected a multiple of dt = {self.dt} s")
+        if target_set not in TARGET_SETS:
+            raise ValueError(f"SoftArmEnv: target_set={target_set!r}; valid: {', '.join(TARGET_SETS)}")
+        self.substeps, self.control_period, self.targets = substeps, control_period, TARGET_SETS[target_set]
         if observed_points < 2 or n_elements % (observed_points - 1):
             raise ValueError(
                 f"SoftArmEnv: n_elements={n_elements} must be a multiple of observed_points - 1 = {observed_points - 1}"
@@ -143,8 +170,8 @@ class SoftArmEnv(gym.Env):
     def _initial_target(self):
         if self._fixed_target is not None:
             return self._fixed_target.copy()
-        if self.task in ARM_TARGETS:
-            return ARM_TARGETS[self.task].copy()
+        if self.task in self.targets:
+            return self.targets[self.task].copy()
         return np.array([0.0, 0.0, self.length])  # the rest tip, until reset draws a target
 
     # ------------------------------------------------------------------ observation
@@ -249,6 +276,21 @@ def sample_reachable_target(rng: np.random.Generator) -> np.ndarray:
     return settle_tip(_TARGET_ENV, rng.uniform(-1, 1, 12))
 
 
+def step_response(env: SoftArmEnv, action, steps: int = 60) -> dict:
+    """Tip displacement from rest under a held ``action``: final move [m], 10-90 % rise and 5 %
+    settling time in control steps, overshoot (fraction of the final move)."""
+    env.reset()
+    tips = [env.tip]
+    for _ in range(steps):
+        env.step(action)
+        tips.append(env.tip)
+    d = np.linalg.norm(np.array(tips) - tips[0], axis=1)
+    final = d[-1]
+    outside = np.nonzero(np.abs(d - final) > 0.05 * final)[0]
+    return {"final_m": float(final), "rise_steps": int(np.argmax(d >= 0.9 * final) - np.argmax(d >= 0.1 * final)),
+            "settle_steps": int(outside[-1] + 1 if len(outside) else 0), "overshoot": float(d.max() / final - 1)}
+
+
 class RampController:
     """Scripted reaching without any learned model or explored data: the actuation ramps from its
     current value toward a constant action ``a*`` whose settled tip is the target,
@@ -294,4 +336,103 @@ def heldout_transitions(n_targets: int, seed: int, observed_points: int = 5, max
             obs = nxt
             if info["distance"] < tolerance:
                 break
+    return {"observation": np.array(obs_l), "action": np.array(act_l), "next_observation": np.array(nxt_l)}
+
+
+# ---------------------------------------------------------------------------- the paper's held-out set
+def _static_tips(actions: np.ndarray, n_elements: int = 20, max_torque: float = 10.0,
+                 bending_stiffness: float = 1e6 * np.pi * 0.05**4 / 4, length: float = 1.0) -> np.ndarray:
+    """Approximate settled tips ``(M, 3)`` of held actions ``(M, 12)``: curvature = couple / EI
+    along the rod (no shear, stretch or twist), integrated element by element. Used only to spread
+    candidate actions over the workspace; targets are always the simulator's own settled tips."""
+    basis = _spline_basis(n_elements - 1)
+    kappa = max_torque / bending_stiffness * np.stack([actions[:, :6] @ basis.T, actions[:, 6:] @ basis.T], -1)
+    ds = length / n_elements
+    M = actions.shape[0]
+    R = np.broadcast_to(np.eye(3), (M, 3, 3)).copy()
+    p = np.zeros((M, 3))
+    for j in range(n_elements):
+        p += ds * R[:, :, 2]
+        if j < n_elements - 1:
+            w = np.concatenate([kappa[:, j], np.zeros((M, 1))], -1) * ds  # rotation vector in the local frame
+            th = np.linalg.norm(w, axis=-1, keepdims=True)
+            k = np.where(th > 1e-12, w / np.maximum(th, 1e-12), 0.0)
+            K = np.zeros((M, 3, 3))
+            K[:, 0, 1], K[:, 0, 2], K[:, 1, 0] = -k[:, 2], k[:, 1], k[:, 2]
+            K[:, 1, 2], K[:, 2, 0], K[:, 2, 1] = -k[:, 0], -k[:, 1], k[:, 0]
+            s, c = np.sin(th)[..., None], np.cos(th)[..., None]
+            R = R @ (np.eye(3) + s * K + (1 - c) * (K @ K))
+    return p
+
+
+def workspace_goal_actions(n_targets: int, seed: int, pool: int = 20000, voxel: float = 0.05) -> np.ndarray:
+    """``(n_targets, 12)`` held actions whose settled tips spread uniformly over the reachable
+    workspace *volume*: a pool of candidate actions (i.i.d. uniform, coherent and linear bending
+    profiles), their approximate tips binned in ``voxel`` cubes, occupied cubes drawn uniformly
+    (not tips of uniform random actions, which cluster near rest)."""
+    rng = np.random.default_rng(seed)
+    k = pool // 3
+    iid = rng.uniform(-1, 1, (k, 12))
+    coherent = np.clip(np.repeat(rng.uniform(-1, 1, (k, 2)), 6, 1) + 0.3 * rng.normal(size=(k, 12)), -1, 1)
+    ends = rng.uniform(-1, 1, (pool - 2 * k, 2, 2))
+    linear = np.concatenate([np.linspace(ends[:, 0, 0], ends[:, 0, 1], 6).T, np.linspace(ends[:, 1, 0], ends[:, 1, 1], 6).T], 1)
+    cand = np.concatenate([iid, coherent, linear])
+    cells = np.floor(_static_tips(cand) / voxel).astype(np.int64)
+    _, cell_of, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    cell_of = cell_of.reshape(-1)
+    chosen_cells = rng.choice(len(counts), size=n_targets, replace=n_targets > len(counts))
+    return np.stack([cand[rng.choice(np.nonzero(cell_of == c)[0])] for c in chosen_cells])
+
+
+def workspace_heldout(n_targets: int, seed: int, observed_points: int = 5, control_period: float = 0.1,
+                      tolerance: float = 0.005, max_steps: int = 60, settle_steps: int = 20,
+                      progress: bool = False) -> dict:
+    """The paper's held-out protocol: ``n_targets`` targets spread uniformly over the reachable
+    workspace volume (:func:`workspace_goal_actions`; each target is the simulator's settled tip of
+    its action), each reached from rest by a fast controller (the command ramps to the target's
+    action at rate 0.5 per step) and trimmed once the tip is within ``tolerance`` (5 mm).
+
+    Returns numpy arrays ``observation``, ``action``, ``next_observation`` and ``targets`` (n, 3).
+    """
+    goals = workspace_goal_actions(n_targets, seed)
+    env = SoftArmEnv(observed_points=observed_points, control_period=control_period, max_episode_steps=10**9)
+    obs_l, act_l, nxt_l, targets = [], [], [], []
+    it = range(n_targets)
+    if progress:
+        from tqdm.auto import tqdm
+
+        it = tqdm(it, desc="held-out arm targets", unit="target", disable=None)  # no bar in a log file
+    for i in it:
+        target = settle_tip(env, goals[i], steps=settle_steps)
+        targets.append(target)
+        obs, info = env.reset(options={"target": target})
+        ctrl = RampController(goals[i], rate=0.5)
+        for _ in range(max_steps):
+            a = ctrl()
+            nxt, _, term, _, info = env.step(a)
+            if term:
+                break
+            obs_l.append(obs), act_l.append(a), nxt_l.append(nxt)
+            obs = nxt
+            if info["distance"] < tolerance:
+                break
+    return {"observation": np.array(obs_l), "action": np.array(act_l), "next_observation": np.array(nxt_l),
+            "targets": np.array(targets)}
+
+
+def random_action_transitions(episodes: int, seed: int, observed_points: int = 5, control_period: float = 0.1,
+                              steps: int = 200) -> dict:
+    """Transitions of i.i.d. uniform actions from rest (the broad motion a Random explorer sees)."""
+    rng = np.random.default_rng(seed)
+    env = SoftArmEnv(observed_points=observed_points, control_period=control_period, max_episode_steps=steps)
+    obs_l, act_l, nxt_l = [], [], []
+    for _ in range(episodes):
+        obs, _ = env.reset()
+        for _ in range(steps):
+            a = rng.uniform(-1, 1, 12).astype(np.float32)
+            nxt, _, term, _, _ = env.step(a)
+            if term:
+                break
+            obs_l.append(obs), act_l.append(a), nxt_l.append(nxt)
+            obs = nxt
     return {"observation": np.array(obs_l), "action": np.array(act_l), "next_observation": np.array(nxt_l)}

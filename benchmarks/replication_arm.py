@@ -1,0 +1,124 @@
+"""The soft-arm replication (issue: SoftAE vs the baselines at a budget that learns), resumable.
+
+    python benchmarks/replication_arm.py --runs softae:0 random:0 random:1 --threads 1
+    python benchmarks/replication_arm.py --table          # the table from every finished result
+
+Each ``METHOD:SEED`` explores ``SoftArm-v1`` at the paper's model, training and iCEM settings
+(Tables S6, S7; the ``paper`` preset), ``planner.precision=auto`` (bf16 where the CPU has native
+bf16; it keeps the candidate ranking, ``test_bf16_ranking_matches_fp32``). After each budget of
+``--budgets`` exploration episodes it evaluates zero-shot (mean propagation, H = 10): (i)
+reach-close and (ii) reach-far one episode each (the arm starts at rest: deterministic), and
+reach-any over ``--any-episodes`` targets drawn from the held-out distribution; and it records the
+held-out normalized MSE (reference-set std), with the s' = s and predict-the-mean baselines.
+
+Every finished (run, budget) is written at once as compact JSON to
+``benchmarks/results/arm_v1/METHOD-sSEED-epBUDGET.json`` (history up to the budget + evaluation),
+so results survive the run dirs; rerunning skips finished budgets and resumes a killed run.
+H-UCRL explores optimistically on task (i), as in the paper.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+RESULTS = Path(__file__).parent / "results" / "arm_v1"
+ENV = "SoftArm-v1"
+TASKS = ["reach-close", "reach-far", "reach-any"]
+PAPER = {"random": 0.2397, "hucrl": 0.7232, "softae": 0.0526}
+
+
+def run_one(method: str, seed: int, budgets: list[int], any_episodes: int, root: Path, overrides: list[str]) -> None:
+    from torchrl_softae.pipeline.config import make_config
+    from torchrl_softae.pipeline.evaluate import evaluate_run
+    from torchrl_softae.pipeline.explore import explore
+
+    for budget in budgets:
+        out = RESULTS / f"{method}-s{seed}-ep{budget}.json"
+        if out.exists():
+            continue
+        cfg = make_config(ENV, method, ["planner.precision=auto", *overrides], episodes=budget, seed=seed,
+                          wandb="disabled", task="reach-close" if method == "hucrl" else None)
+        run_dir = root / f"{method}-s{seed}"
+        t0 = time.time()
+        history = explore(cfg, run_dir, progress=False)
+        t_explore = time.time() - t0
+        t0 = time.time()
+        fixed = evaluate_run(run_dir, tasks=["reach-close", "reach-far"], episodes=1, seed=0, progress=False)
+        anyres = evaluate_run(run_dir, tasks=["reach-any"], episodes=any_episodes, seed=0, progress=False)
+        tasks = {**fixed["tasks"], **anyres["tasks"]}
+        result = {
+            "env": ENV, "method": method, "seed": seed, "episodes": budget, "transitions": history[-1]["transitions"],
+            "history": history, "explore_seconds_this_call": t_explore, "eval_seconds": time.time() - t0,
+            "accuracy": {k: v for k, v in fixed.items() if k.startswith("heldout_nmse")},
+            "tasks": {name: {"returns": r["returns"], "mean_return": r["mean_return"],
+                             "final_error_mm": [m["final_error_mm"] for m in r["metrics"]],
+                             "min_error_mm": [m["min_error_mm"] for m in r["metrics"]]} for name, r in tasks.items()},
+            "config": cfg.to_dict(),
+        }
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=1, default=float))
+        print(f"{out.name}: nmse {result['accuracy']['heldout_nmse']:.4g}, "
+              + ", ".join(f"{k} {v['mean_return']:.1f} ({np.mean(v['final_error_mm']):.0f} mm)"
+                          for k, v in result["tasks"].items()), flush=True)
+
+
+def table() -> str:
+    rows = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("*.json"))]
+    if not rows:
+        return "no finished result yet"
+    from torchrl_softae.pipeline.methods import METHOD_NAMES
+
+    lines = []
+    for budget in sorted({r["episodes"] for r in rows}):
+        group = [r for r in rows if r["episodes"] == budget]
+        lines += [f"\n{ENV}, {budget} exploration episodes = {group[0]['transitions']} transitions per run "
+                  "(paper preset, iCEM H=10, mean +- std over seeds)\n",
+                  "| method | seeds | held-out nMSE | s'=s | predict mean | coverage | (i) return | (i) final error [mm] | "
+                  "(ii) return | (ii) final error [mm] | reach-any return | reach-any final error [mm] | paper nMSE |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for m in [m for m in METHOD_NAMES if any(r["method"] == m for r in group)]:
+            rs = [r for r in group if r["method"] == m]
+
+            def f(values, fmt="{:.3g}"):
+                v = np.asarray(values, dtype=float)
+                return (fmt.format(v.mean()) + (" +- " + fmt.format(v.std()) if len(v) > 1 else "")) if len(v) else "-"
+
+            cells = [m, str(len(rs)), f([r["accuracy"]["heldout_nmse"] for r in rs]),
+                     f([r["accuracy"]["heldout_nmse_identity"] for r in rs]),
+                     f([r["accuracy"]["heldout_nmse_mean"] for r in rs]),
+                     f([r["history"][-1]["coverage"] for r in rs], "{:.2f}")]
+            for t in TASKS:
+                cells += [f([r["tasks"][t]["mean_return"] for r in rs], "{:.1f}"),
+                          f([np.mean(r["tasks"][t]["final_error_mm"]) for r in rs], "{:.0f}")]
+            cells.append(str(PAPER.get(m, "-")))
+            lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--runs", nargs="*", default=[], metavar="METHOD:SEED", help="run these, one after another")
+    p.add_argument("--budgets", type=int, nargs="+", default=[10, 25, 50])
+    p.add_argument("--any-episodes", type=int, default=3)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--root", default=str(Path(__file__).parent / "results" / "runs" / "arm_v1"))
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--table", action="store_true", help="print the table of finished results and exit")
+    args = p.parse_args()
+    if args.table:
+        print(table())
+        return
+    torch.set_num_threads(args.threads)
+    for item in args.runs:
+        method, seed = item.split(":")
+        run_one(method, int(seed), args.budgets, args.any_episodes, Path(args.root), args.overrides)
+    print(table())
+
+
+if __name__ == "__main__":
+    main()
