@@ -3,7 +3,8 @@
     softae explore  --env Pendulum-v1 --method softae --episodes 10 --seed 0 --run-dir runs/pend
     softae evaluate --run-dir runs/pend --task swingup
     softae plot     --run-dir runs/pend          (a run, or a folder of runs to compare)
-    softae sweep    sweeps/pendulum.yaml         (method x seed x beta grid, run locally)
+    softae sweep    sweeps/pendulum.yaml         (a grid of runs, many at once on Ray Tune)
+    softae report   runs                         (tables and plots from a folder of runs)
     softae demo                                  (a short exploration + evaluation + plots)
 
 Heavy imports (torch, torchrl) happen only after the arguments parse, so ``--help`` is instant.
@@ -145,41 +146,57 @@ def cmd_plot(args) -> int:
 
 
 def cmd_sweep(args) -> int:
-    import itertools
+    from torchrl_softae.pipeline.config import ConfigError
+    from torchrl_softae.pipeline.sweep import expand, load_sweep, run_local, run_ray, trial_status
 
-    import yaml
+    if args.address and not args.storage:
+        raise ConfigError("--address joins a Ray cluster: pass --storage PATH on a filesystem every node shares "
+                          "(run dirs and Tune's results must be visible to all of them)")
+    if args.cpus_per_trial < 1 or (args.jobs is not None and args.jobs < 1) or args.max_failures < 0:
+        raise ConfigError("--cpus-per-trial and --jobs take a positive number, --max-failures a number >= 0")
+    spec = load_sweep(args.file)
+    root = args.root or (os.path.join(args.storage, "runs") if args.storage else "runs")
+    trials, dropped = expand(spec, root)
+    status = {t.name: trial_status(t) for t in trials}
+    todo = [t for t in trials if status[t.name] != "finished"]
+    keys = ", ".join(spec["parameters"])
+    print(f"sweep {args.file}: {len(trials)} runs over {keys}"
+          + (f" ({dropped} duplicates dropped: parameters a method ignores)" if dropped else "")
+          + f"; {len(trials) - len(todo)} finished, {len(todo)} to run, under {root}")
+    for t in trials:
+        print(f"softae explore {' '.join(t.argv)}   [{status[t.name]}]", flush=True)
+    if args.dry_run or not todo:
+        return 0
+    use_ray = args.jobs is None and _ray_available()
+    if args.address and not use_ray:
+        raise ConfigError("--address needs Ray: pip install 'torchrl-softae[ray]' (and no --jobs)")
+    if use_ray:
+        final = run_ray(todo, args.cpus_per_trial, args.max_failures, address=args.address, storage=args.storage,
+                        num_cpus=None if args.address else max(available_cores(), args.cpus_per_trial))
+    else:
+        jobs = args.jobs or max(1, available_cores() // args.cpus_per_trial)
+        print(f"engine: local processes ({'Ray is not installed; ' if args.jobs is None else ''}{jobs} at a time, "
+              f"{args.cpus_per_trial} torch thread(s) each)", flush=True)
+        final = run_local(todo, jobs, args.cpus_per_trial, args.max_failures)
+    unfinished = [n for n, st in final.items() if st != "finished"]
+    print(f"sweep done: {len(final) - len(unfinished)} of {len(final)} trials finished"
+          + (f"; unfinished: {', '.join(unfinished)} (rerun the same command to resume them)" if unfinished else "")
+          + f". Tables: softae report {root}")
+    return 1 if unfinished else 0
 
-    with open(args.file) as f:
-        spec = yaml.safe_load(f)
-    params = spec.get("parameters", {})
-    grid_keys = [k for k, v in params.items() if "values" in v]
-    fixed = {k: v["value"] for k, v in params.items() if "value" in v}
-    base = [a for a in spec.get("command", []) if not a.startswith("${")]
-    base = base[base.index("explore") + 1 :] if "explore" in base else []
-    combos, seen = [], set()
-    for combo in itertools.product(*(params[k]["values"] for k in grid_keys)):
-        run = {**fixed, **dict(zip(grid_keys, combo))}
-        if not get_method(str(run.get("method", "softae"))).uses_beta:
-            run.pop("beta", None)  # beta does not change this method: one run, not one per beta
-        key = tuple(sorted(run.items()))
-        if key not in seen:
-            seen.add(key)
-            combos.append(run)
-    total = 1
-    for k in grid_keys:
-        total *= len(params[k]["values"])
-    print(f"sweep {args.file}: {len(combos)} runs over {', '.join(grid_keys)}"
-          + (f" ({total - len(combos)} duplicates dropped: parameters a method ignores)" if total > len(combos) else ""))
-    for run in combos:
-        argv = ["explore", *base] + [f"--{k.replace('_', '-')}={v}" for k, v in run.items()]
-        if args.root:
-            cfg = _config(build_parser().parse_args(argv))
-            argv.append(f"--run-dir={run_dir_for(cfg, args.root)}")
-        print("softae " + " ".join(argv), flush=True)
-        if not args.dry_run:
-            rc = main(argv)
-            if rc:
-                return rc
+
+def _ray_available() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("ray") is not None
+
+
+def cmd_report(args) -> int:
+    from torchrl_softae.pipeline.report import report
+
+    md, json_path, md_path, plots = report(args.root, plots=not args.no_plots)
+    print(md)
+    print(f"\nwrote {md_path} and {json_path}" + (f"; plots: {', '.join(str(p) for p in plots)}" if plots else ""))
     return 0
 
 
@@ -239,11 +256,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run-dir", required=True, help="a run dir, or a folder of runs to compare methods")
     p.set_defaults(func=cmd_plot)
 
-    p = sub.add_parser("sweep", help="run a W&B sweep file's grid locally (no W&B server needed)")
-    p.add_argument("file", help="sweep YAML (W&B format: parameters with values lists)")
-    p.add_argument("--root", default=None, help="put each run under ROOT/ENV/METHOD-bBETA-sSEED")
-    p.add_argument("--dry-run", action="store_true", help="print the commands only")
+    p = sub.add_parser("sweep", help="run a W&B sweep file's grid as many runs at once (Ray Tune, or local processes)",
+                       description="Each run is one `softae explore` in its own run dir ROOT/ENV/NAME; a killed run "
+                                   "is retried and resumes; rerunning the same command skips finished runs. On a "
+                                   "cluster: `ray start --head` on one node, `ray start --address=HEAD:6379` on the "
+                                   "others, then `softae sweep FILE --address auto --storage /shared/path`.")
+    p.add_argument("file", help="sweep YAML (W&B format: method grid|random, parameters with values/value, command)")
+    p.add_argument("--root", default=None, help="runs go to ROOT/ENV/NAME (default runs, or STORAGE/runs)")
+    p.add_argument("--dry-run", action="store_true", help="list the runs and their state only")
+    p.add_argument("--cpus-per-trial", type=int, default=1,
+                   help="CPUs Tune reserves for a run, and its torch threads (default 1: no oversubscription)")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="run as N local processes instead of Ray (default: Ray if installed, else cores / cpus-per-trial)")
+    p.add_argument("--max-failures", type=int, default=2, help="retries of a crashed run (it resumes); default 2")
+    p.add_argument("--address", default=None, help="join a Ray cluster (HOST:PORT or auto) instead of an embedded Ray")
+    p.add_argument("--storage", default=None, help="a path every cluster node shares (required with --address)")
     p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("report", help="the paper's tables and plots from a folder of runs (a sweep or runs by hand)")
+    p.add_argument("root", help="a folder of run dirs")
+    p.add_argument("--no-plots", action="store_true")
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("demo", help="a short Pendulum exploration, evaluation and plots (a few minutes)")
     p.add_argument("--run-dir", default=os.path.join("runs", "demo"))

@@ -15,7 +15,7 @@ from torchrl_softae.pipeline.data import ModelAccuracy, episode_seed, make_real_
 from torchrl_softae.pipeline.runs import CheckpointError, RunDir
 from torchrl_softae.tasks.base import Task, TaskReward
 
-__all__ = ["load_run", "zero_shot", "task_policy", "reference_returns", "evaluate_run"]
+__all__ = ["load_run", "zero_shot", "task_policy", "reference_returns", "evaluate_run", "eval_file_name"]
 
 
 def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, dict]:
@@ -60,6 +60,12 @@ def _task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for) -
             metrics[-1].update({f"target_{k}": v for k, v in episode_task.params.items()})
     real.close()
     return {"returns": returns, "metrics": metrics}
+
+
+def eval_file_name(task: str, planner_overrides: list[str] | None = None) -> str:
+    """``TASK.json``, or ``TASK@key=value,....json`` for an evaluation planned with overrides."""
+    suffix = ("@" + ",".join(o.split(".", 1)[1] for o in planner_overrides)) if planner_overrides else ""
+    return f"{task}{suffix}.json"
 
 
 def task_policy(cfg: ExploreConfig, model: EnsembleWorldModel, task: Task, action_spec, propagation: str = "mean",
@@ -161,7 +167,6 @@ def evaluate_run(
         # which model was evaluated: a resumed, longer exploration makes this result stale
         res.update(propagation=propagation, beta=cfg.beta, seed=seed, episodes=episodes, planner=dict(vars(cfg.planner)),
                    episodes_explored=out["episodes_explored"])
-        suffix = ("@" + ",".join(o.split(".", 1)[1] for o in planner_overrides)) if planner_overrides else ""
-        run.write_json(run.eval_dir / f"{name}{suffix}.json", res)
+        run.write_json(run.eval_dir / eval_file_name(name, planner_overrides), res)
         out["tasks"][name] = res
     return out

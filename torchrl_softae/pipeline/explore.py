@@ -62,13 +62,14 @@ class Explorer:
     """
 
     def __init__(self, cfg: ExploreConfig, run_dir: str | Path, progress: bool = True, echo=print,
-                 announce_resume: bool = True):
+                 announce_resume: bool = True, on_episode=None):
         self.cfg = cfg.validate()
         self.run = RunDir(run_dir)
         self.run.path.mkdir(parents=True, exist_ok=True)
         self.progress = progress
         self.echo = echo
         self.announce_resume = announce_resume
+        self.on_episode = on_episode  # called with each finished (checkpointed) episode's row
         self.entry = get_env_entry(cfg.env)
         self.task = self.entry.tasks.get(cfg.task) if cfg.task else None
 
@@ -154,6 +155,9 @@ class Explorer:
                 "history": history, "wandb_id": wandb_id,
             }
             self.run.save(state, rb)
+            if self.on_episode is not None:
+                self.on_episode(row)
+            _fault_injection(self.run, n)
             if logger is not None:
                 for k, v in row.items():
                     if isinstance(v, (int, float)) and k != "episode" and math.isfinite(v):
@@ -239,6 +243,25 @@ class Explorer:
         return row
 
 
-def explore(cfg: ExploreConfig, run_dir: str | Path, progress: bool = True, echo=print) -> list[dict]:
+def explore(cfg: ExploreConfig, run_dir: str | Path, progress: bool = True, echo=print, on_episode=None) -> list[dict]:
     """Run or resume an exploration; returns the per-episode history."""
-    return Explorer(cfg, run_dir, progress=progress, echo=echo).run_exploration()
+    return Explorer(cfg, run_dir, progress=progress, echo=echo, on_episode=on_episode).run_exploration()
+
+
+#: test hook: ``SOFTAE_EXIT_AFTER_EPISODE=K`` (or ``K:NAME``, only run dirs whose name contains
+#: NAME) makes a run die (``os._exit``) right after checkpointing episode K, once per run dir (a
+#: marker file remembers it), to test that sweeps retry and resume killed runs
+FAULT_ENV = "SOFTAE_EXIT_AFTER_EPISODE"
+
+
+def _fault_injection(run: RunDir, episode: int) -> None:
+    import os
+
+    spec = os.environ.get(FAULT_ENV)
+    if not spec:
+        return
+    k, _, name = spec.partition(":")
+    marker = run.path / ".injected_exit"
+    if episode + 1 == int(k) and name in run.path.name and not marker.exists():
+        marker.write_text(f"killed after episode {episode + 1}\n")
+        os._exit(17)

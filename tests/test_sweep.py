@@ -1,0 +1,151 @@
+"""Sweeps on Ray Tune (embedded) and on local processes: concurrent trials, a killed trial retried
+and resumed bit for bit, reruns that do no work, `softae report`, and bad input before any trial."""
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchrl_softae.pipeline.cli import main
+
+TINY = """
+method: grid
+parameters:
+  method: {values: [random, softae]}
+  seed: {values: [0, 1]}
+  beta: {value: 2.0}
+command:
+  - ${program}
+  - explore
+  - "--env"
+  - "Pendulum-v1"
+  - "--preset"
+  - "quick"
+  - "--episodes"
+  - "3"
+  - "--episode-length"
+  - "20"
+  - "--set"
+  - "planner.horizon=2"
+  - "--set"
+  - "planner.num_candidates=8"
+  - "--set"
+  - "planner.top_k=2"
+  - "--set"
+  - "train.epochs=1"
+  - "--set"
+  - "heldout_size=50"
+  - "--wandb"
+  - "disabled"
+  - "--quiet"
+  - ${args}
+evaluate: {tasks: [swingup], episodes: 1, planner: {horizon: 2}}
+"""
+HAS_RAY = importlib.util.find_spec("ray") is not None
+
+
+def _write(tmp_path, text=TINY, name="sweep.yaml"):
+    f = tmp_path / name
+    f.write_text(text)
+    return f
+
+
+def _model(run_dir):
+    return torch.load(Path(run_dir) / "checkpoint.pt", weights_only=False)["model"]
+
+
+def _check_sweep(tmp_path, root, capsys):
+    runs = sorted(p.parent for p in Path(root).rglob("checkpoint.pt"))
+    assert [p.name for p in runs] == ["random-s0", "random-s1", "softae-b2-s0", "softae-b2-s1"]
+    for run in runs:
+        history = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+        assert [h["episode"] for h in history] == [0, 1, 2]  # no repeated, no missing episode
+        assert (run / "eval" / "swingup@horizon=2.json").exists()
+    killed = Path(root) / "Pendulum-v1" / "softae-b2-s1"
+    assert (killed / ".injected_exit").exists()  # it really died after episode 2
+    # the same run, uninterrupted, in this process with the trial's single thread
+    from torchrl_softae.pipeline.sweep import expand, load_sweep, run_trial
+
+    trials, _ = expand(load_sweep(tmp_path / "sweep.yaml"), tmp_path / "reference")
+    ref = next(t for t in trials if t.run_dir.name == "softae-b2-s1")
+    threads = torch.get_num_threads()
+    try:
+        run_trial(ref, threads=1)
+    finally:
+        torch.set_num_threads(threads)
+    a, b = _model(killed), _model(ref.run_dir)
+    assert all(torch.equal(a[k], b[k]) for k in a)  # bit for bit
+    # rerunning the finished sweep does no work
+    capsys.readouterr()
+    assert main(["sweep", str(tmp_path / "sweep.yaml"), "--root", str(root)]) == 0
+    assert "4 finished, 0 to run" in capsys.readouterr().out
+
+
+@pytest.mark.skipif(not HAS_RAY, reason="Ray is not installed (pip install 'torchrl-softae[ray]')")
+def test_ray_sweep_runs_trials_concurrently_and_resumes_a_killed_one(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("SOFTAE_EXIT_AFTER_EPISODE", "2:softae-b2-s1")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))  # nothing may be left in the real home folder
+    f = _write(tmp_path)
+    root = tmp_path / "runs"
+    assert main(["sweep", str(f), "--root", str(root), "--cpus-per-trial", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "engine: Ray" in out and "embedded, 2 CPUs" in out
+    monkeypatch.delenv("SOFTAE_EXIT_AFTER_EPISODE")
+    _check_sweep(tmp_path, root, capsys)
+    assert not (tmp_path / "home" / ".ray").exists() or not any((tmp_path / "home" / ".ray").rglob("*token*"))
+
+
+def test_local_processes_sweep_resumes_a_killed_trial(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("SOFTAE_EXIT_AFTER_EPISODE", "2:softae-b2-s1")
+    f = _write(tmp_path)
+    root = tmp_path / "runs"
+    assert main(["sweep", str(f), "--root", str(root), "--jobs", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "engine: local processes (2 at a time" in out and "exited with code 17" in out
+    monkeypatch.delenv("SOFTAE_EXIT_AFTER_EPISODE")
+    _check_sweep(tmp_path, root, capsys)
+
+    # a run that died and was not resumed is reported as unfinished, never averaged
+    unfinished = root / "Pendulum-v1" / "random-s7"
+    argv = ["explore", "--env", "Pendulum-v1", "--method", "random", "--seed", "7", "--preset", "quick",
+            "--episodes", "3", "--episode-length", "20", "--set", "heldout_size=50", "--set", "train.epochs=1",
+            "--wandb", "disabled", "--quiet", "--run-dir", str(unfinished)]
+    env = {**__import__("os").environ, "SOFTAE_EXIT_AFTER_EPISODE": "1"}
+    rc = subprocess.run([sys.executable, "-m", "torchrl_softae.pipeline.cli", *argv], env=env,
+                        capture_output=True).returncode
+    assert rc == 17
+    capsys.readouterr()
+    assert main(["report", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert "## Pendulum-v1: 3 episodes = 60 transitions per run" in out
+    assert "| random | 2 |" in out and "| softae | 2 |" in out and "swingup@horizon=2 return" in out
+    assert "random seed 7, 1 of 3 episodes" in out
+    data = json.loads((root / "report.json").read_text())
+    assert [r["method"] for r in data["tables"][0]["rows"]] == ["random", "softae"]
+    assert data["unfinished"][0]["episodes_done"] == 1
+
+
+@pytest.mark.parametrize("text, args, needle", [
+    (TINY.replace("seed: {values", "sed: {values"), [], "unknown sweep parameter 'sed'"),
+    (TINY.replace("beta: {value: 2.0}", "set: {value: planner.precision=fp8}"), [], "planner.precision='fp8'"),
+    (TINY.replace("method: grid", "method: bayes"), [], "needs W&B's sweep controller"),
+    (TINY, ["--address", "auto"], "--storage"),
+])
+def test_bad_sweep_input_is_one_line_before_any_trial(tmp_path, capsys, text, args, needle):
+    f = _write(tmp_path, text)
+    assert main(["sweep", str(f), "--root", str(tmp_path / "runs"), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+    assert not (tmp_path / "runs").exists()
+
+
+def test_random_search_with_run_cap(tmp_path, capsys):
+    text = TINY.replace("method: grid", "method: random\nrun_cap: 3").replace("seed: {values: [0, 1]}",
+                                                                              "seed: {values: [0, 1, 2, 3, 4, 5]}")
+    f = _write(tmp_path, text)
+    assert main(["sweep", str(f), "--root", str(tmp_path / "runs"), "--dry-run"]) == 0
+    lines = [x for x in capsys.readouterr().out.splitlines() if x.startswith("softae explore")]
+    assert 1 <= len(lines) <= 3

@@ -1,0 +1,141 @@
+"""``softae report ROOT``: any folder of runs (a sweep, or runs made by hand) as the paper's tables.
+
+Per env and budget (episodes x transitions; runs of different budgets are never averaged
+together): one row per method with mean +- std over seeds of the held-out normalized MSE, the
+coverage and each evaluated task's zero-shot return (and its success measure where the task has
+one), plus the model-free reference rows where a run dir holds ``eval/references.json``. Runs that
+have not reached their configured number of episodes are listed as unfinished, never averaged.
+Markdown and JSON go to ``ROOT/report.md`` and ``ROOT/report.json``; comparison plots to
+``ROOT/plots/``.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from torchrl_softae.pipeline.methods import METHOD_NAMES
+from torchrl_softae.pipeline.runs import CheckpointError, RunDir
+
+__all__ = ["collect", "report"]
+
+
+def _fmt(values, digits: int = 4) -> str:
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], dtype=float)
+    if not len(v):
+        return "-"
+    m = f"{v.mean():.{digits}g}"
+    return m + (f" ± {v.std():.2g}" if len(v) > 1 else "")
+
+
+def collect(root: str | Path, warn=None) -> list[dict]:
+    """One record per run dir below ``root``: config, progress, last history row, evaluations."""
+    warn = warn or (lambda m: print(m, file=sys.stderr))
+    root = Path(root)
+    if not root.exists():
+        raise FileNotFoundError(f"{root} does not exist")
+    out = []
+    for cfg_path in sorted(root.rglob("config.json")):
+        run = RunDir(cfg_path.parent)
+        try:
+            stored = run.read_config()
+        except CheckpointError as e:
+            warn(f"softae report: skipping {run.path}: {e}")
+            continue
+        cfg = stored.get("config", {})
+        history = run.history()
+        evals = {}
+        if (run.path / "eval").exists():
+            for p in sorted((run.path / "eval").glob("*.json")):
+                if p.stem not in ("model_accuracy",):
+                    evals[p.stem] = json.loads(p.read_text())
+        out.append({"run_dir": str(run.path), "env": cfg.get("env"), "method": cfg.get("method"),
+                    "seed": cfg.get("seed"), "episodes_target": cfg.get("episodes"), "episodes_done": len(history),
+                    "transitions": history[-1]["transitions"] if history else 0,
+                    "last": history[-1] if history else {}, "evals": evals})
+    return out
+
+
+def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, Path, list]:
+    """Build the tables (markdown + JSON) and plots; returns ``(markdown, json path, md path, plots)``."""
+    from torchrl_softae.pipeline.catalog import get_env_entry
+
+    root = Path(root)
+    runs = collect(root, warn)
+    if not runs:
+        raise FileNotFoundError(f"no run (config.json) below {root}")
+    finished = [r for r in runs if r["episodes_done"] >= (r["episodes_target"] or 0) and r["episodes_done"]]
+    unfinished = [r for r in runs if r not in finished]
+    groups = defaultdict(lambda: defaultdict(list))
+    for r in finished:
+        groups[(r["env"], r["episodes_done"], r["transitions"])][r["method"]].append(r)
+    md, tables = [f"# Report of {root}", ""], []
+    for (env, episodes, transitions), by_method in sorted(groups.items()):
+        entry = get_env_entry(env)
+        # evaluations planned with overrides keep their own column (TASK@key=value)
+        tasks = sorted({t for rs in by_method.values() for r in rs for t in r["evals"] if t != "references"})
+        base = {t: t.split("@")[0] for t in tasks}
+        metric_of = {t: entry.tasks[base[t]].success_metric if base[t] in entry.tasks else None for t in tasks}
+        head = ["method", "seeds", "held-out normalized MSE", "coverage"]
+        for t in tasks:
+            head.append(f"{t} return")
+            if metric_of[t]:
+                head.append(f"{t} {metric_of[t].replace('_', ' ')}")
+        rows = []
+        order = [m for m in METHOD_NAMES if m in by_method] + sorted(set(by_method) - set(METHOD_NAMES))
+        for m in order:
+            rs = by_method[m]
+            row = {"method": m, "seeds": sorted(r["seed"] for r in rs),
+                   "heldout_nmse": [r["last"].get("heldout_nmse") for r in rs],
+                   "coverage": [r["last"].get("coverage") for r in rs]}
+            cells = [m, str(len(rs)), _fmt(row["heldout_nmse"]), _fmt(row["coverage"], 3)]
+            for t in tasks:
+                ret = [np.mean(r["evals"][t]["returns"]) if t in r["evals"] else None for r in rs]
+                row[f"{t}/return"] = ret
+                cells.append(_fmt(ret, 3))
+                if metric_of[t]:
+                    mv = [np.mean([x[metric_of[t]] for x in r["evals"][t]["metrics"]]) if t in r["evals"] else None
+                          for r in rs]
+                    row[f"{t}/{metric_of[t]}"] = mv
+                    cells.append(_fmt(mv, 3))
+            rows.append(row)
+            md_row = "| " + " | ".join(cells) + " |"
+            row["markdown"] = md_row
+        refs = defaultdict(list)
+        for rs in by_method.values():
+            for r in rs:
+                for name, vals in (r["evals"].get("references") or {}).items():
+                    refs[name].append(vals)
+        md += [f"## {env}: {episodes} episodes = {transitions} transitions per run", "",
+               "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        md += [row["markdown"] for row in rows]
+        for name, vals in refs.items():
+            cells = [f"*{name}*", "-", "-", "-"]
+            for t in tasks:
+                cells.append(_fmt([v.get(t) for v in vals], 3))
+                if metric_of[t]:
+                    cells.append("-")
+            md.append("| " + " | ".join(cells) + " |")
+        md.append("")
+        tables.append({"env": env, "episodes": episodes, "transitions": transitions, "columns": head,
+                       "rows": [{k: v for k, v in row.items() if k != "markdown"} for row in rows]})
+    if unfinished:
+        md += ["## Unfinished runs (not averaged)", ""]
+        md += [f"- {r['run_dir']}: {r['method']} seed {r['seed']}, {r['episodes_done']} of {r['episodes_target']} "
+               "episodes" for r in unfinished]
+        md.append("")
+    text = "\n".join(md)
+    md_path, json_path = root / "report.md", root / "report.json"
+    md_path.write_text(text)
+    json_path.write_text(json.dumps({"tables": tables, "unfinished": [
+        {k: r[k] for k in ("run_dir", "method", "seed", "episodes_done", "episodes_target")} for r in unfinished]},
+        indent=1, default=float))
+    written = []
+    if plots:
+        from torchrl_softae.pipeline.plots import plot_comparison
+
+        written = plot_comparison(root, warn)
+    return text, json_path, md_path, written

@@ -1,0 +1,283 @@
+"""Sweeps: a W&B sweep file's grid, run as many ``softae explore`` trials at once on Ray Tune
+(embedded on this machine, or a cluster), or as local processes without Ray.
+
+A trial is one exploration run in its own run dir, ``ROOT/ENV/NAME`` (the name the method table
+gives); the run dir is the checkpoint. A crashed trial is retried and resumes from its last
+episode; rerunning a killed sweep skips finished trials and resumes the others. Each trial
+reports one result per episode to Tune and logs to its own offline W&B run (stable id).
+
+Sweep file (W&B's format, so ``wandb sweep FILE`` works where a W&B server exists)::
+
+    method: grid                   # or random (with run_cap); bayes needs a W&B server
+    parameters:
+      method: {values: [random, softae]}
+      seed: {values: [0, 1, 2]}
+      beta: {value: 2.0}
+    command: [${program}, explore, --env, Pendulum-v1, --preset, quick, ${args}]
+    evaluate:                      # optional, ours: zero-shot evaluation of each finished run
+      tasks: [swingup]
+      episodes: 3
+      propagation: mean
+      planner: {horizon: 30}
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import random
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from torchrl_softae.pipeline.config import ConfigError
+from torchrl_softae.pipeline.methods import get_method
+
+__all__ = ["Trial", "load_sweep", "expand", "trial_status", "run_trial", "run_local", "run_ray"]
+
+
+@dataclass
+class Trial:
+    """One exploration run of a sweep (+ its evaluation)."""
+
+    name: str
+    argv: list[str]  # ``softae explore`` arguments, --run-dir included
+    run_dir: Path
+    episodes: int
+    evaluate: dict | None = None
+    params: dict = field(default_factory=dict)
+
+
+def load_sweep(path: str | Path) -> dict:
+    import yaml
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"sweep file {path} does not exist")
+    try:
+        spec = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path} is not valid YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(spec, dict) or not isinstance(spec.get("parameters"), dict):
+        raise ConfigError(f"{path}: a sweep file needs a 'parameters' mapping (W&B sweep format)")
+    return spec
+
+
+def _combinations(spec: dict) -> list[dict]:
+    params = spec["parameters"]
+    for name, p in params.items():
+        if not isinstance(p, dict) or not ({"values", "value"} & set(p)):
+            raise ConfigError(f"parameter {name!r}: expected 'values: [...]' or 'value: x' "
+                              "(distributions need W&B's own controller)")
+    grid = {k: p["values"] for k, p in params.items() if "values" in p}
+    fixed = {k: p["value"] for k, p in params.items() if "value" in p}
+    kind = spec.get("method", "grid")
+    if kind == "bayes":
+        raise ConfigError("sweep method 'bayes' needs W&B's sweep controller, i.e. a W&B server: run "
+                          "`wandb sweep FILE` + `wandb agent` there, or use method grid or random here")
+    combos = [{**fixed, **dict(zip(grid, c))} for c in itertools.product(*grid.values())]
+    if kind == "random":
+        cap = spec.get("run_cap")
+        if not isinstance(cap, int) or cap < 1:
+            raise ConfigError(f"sweep method 'random' needs run_cap (a positive integer), got {cap!r}")
+        rng = random.Random(int(spec.get("seed", 0)))
+        combos = [{**fixed, **{k: rng.choice(v) for k, v in grid.items()}} for _ in range(cap)]
+    elif kind != "grid":
+        raise ConfigError(f"sweep method {kind!r}; valid here: grid, random (bayes needs a W&B server)")
+    return combos
+
+
+def expand(spec: dict, root: str | Path) -> tuple[list[Trial], int]:
+    """Trials of a sweep, validated (every config checked before anything runs); returns the
+    trials and the number of combinations dropped as duplicates (parameters a method ignores)."""
+    from torchrl_softae.pipeline.cli import _config, build_parser, run_dir_for
+
+    parser = build_parser()
+    explore_parser = parser._subparsers._group_actions[0].choices["explore"]
+    flags = {o[2:].replace("-", "_") for a in explore_parser._actions for o in a.option_strings
+             if o.startswith("--")} - {"help", "run_dir"}
+    for name in spec["parameters"]:
+        if name.replace("-", "_") not in flags:
+            raise ConfigError(f"unknown sweep parameter {name!r}; valid: {', '.join(sorted(flags))}")
+    base = [a for a in spec.get("command", []) if not str(a).startswith("${")]
+    base = [str(a) for a in base[base.index("explore") + 1:]] if "explore" in base else []
+    trials, seen, total = [], set(), 0
+    for run in _combinations(spec):
+        total += 1
+        if not get_method(str(run.get("method", "softae"))).uses_beta:
+            run.pop("beta", None)  # beta does not change this method: one run, not one per beta
+        key = tuple(sorted((k, str(v)) for k, v in run.items()))
+        if key in seen:
+            continue
+        seen.add(key)
+        argv = ["explore", *base]
+        for k, v in run.items():
+            if k == "set":  # --set takes a list of KEY=VALUE
+                argv += [x for item in (v if isinstance(v, list) else [v]) for x in ("--set", str(item))]
+            else:
+                argv.append(f"--{k.replace('_', '-')}={v}")
+        try:
+            cfg = _config(parser.parse_args(argv))
+        except SystemExit:
+            raise ConfigError(f"sweep run {run}: the arguments {' '.join(argv[1:])} do not parse") from None
+        except ConfigError as e:
+            raise ConfigError(f"sweep run {run}: {e}") from None
+        run_dir = Path(run_dir_for(cfg, str(root))).resolve()
+        name = f"{cfg.env}/{run_dir.name}"
+        trials.append(Trial(name, argv[1:] + [f"--run-dir={run_dir}"], run_dir, cfg.episodes,
+                            spec.get("evaluate"), dict(run)))
+    return trials, total - len(trials)
+
+
+def trial_status(trial: Trial) -> str:
+    """``"finished"``, ``"partial k/N"`` or ``"new"`` from the run dir alone."""
+    from torchrl_softae.pipeline.runs import RunDir
+
+    history = RunDir(trial.run_dir).history()
+    done = len(history)
+    if done >= trial.episodes and _evaluated(trial):
+        return "finished"
+    return f"partial {done}/{trial.episodes}" if done else "new"
+
+
+def _planner_overrides(evaluate: dict) -> list[str] | None:
+    return [f"planner.{k}={v}" for k, v in (evaluate.get("planner") or {}).items()] or None
+
+
+def _evaluated(trial: Trial) -> bool:
+    from torchrl_softae.pipeline.evaluate import eval_file_name
+
+    if not trial.evaluate:
+        return True
+    eval_dir = trial.run_dir / "eval"
+    for task in trial.evaluate.get("tasks") or []:
+        f = eval_dir / eval_file_name(task, _planner_overrides(trial.evaluate))
+        if not f.exists() or json.loads(f.read_text()).get("episodes_explored") != trial.episodes:
+            return False
+    return (eval_dir / "model_accuracy.json").exists()
+
+
+def run_trial(trial: Trial, threads: int, on_episode=None) -> dict:
+    """Explore (resuming) and evaluate one trial in this process; returns its last result row."""
+    import torch
+
+    from torchrl_softae.pipeline.cli import _config, build_parser
+    from torchrl_softae.pipeline.evaluate import evaluate_run
+    from torchrl_softae.pipeline.explore import explore
+
+    torch.set_num_threads(threads)
+    cfg = _config(build_parser().parse_args(["explore", *trial.argv]))
+    history = explore(cfg, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
+    row = dict(history[-1])
+    if trial.evaluate and not _evaluated(trial):
+        ev = trial.evaluate
+        res = evaluate_run(trial.run_dir, tasks=ev.get("tasks"), episodes=int(ev.get("episodes", 3)),
+                           propagation=ev.get("propagation", "mean"), progress=False,
+                           planner_overrides=_planner_overrides(ev))
+        row.update({f"return/{k}": v["mean_return"] for k, v in res["tasks"].items()})
+        if on_episode is not None:
+            on_episode({**history[-1], **row, "evaluated": 1})
+    return row
+
+
+# ---------------------------------------------------------------------------- engines
+def run_local(trials: list[Trial], jobs: int, threads: int, max_failures: int, echo=print) -> dict:
+    """Each trial as a ``softae`` subprocess, ``jobs`` at a time; a failed one is retried
+    ``max_failures`` times (it resumes from its run dir). Returns {trial name: status}."""
+    status: dict[str, str] = {}
+    lock = threading.Lock()
+    pending = list(trials)
+
+    def worker():
+        while True:
+            with lock:
+                if not pending:
+                    return
+                trial = pending.pop(0)
+            for attempt in range(max_failures + 1):
+                cmd = [sys.executable, "-m", "torchrl_softae.pipeline.sweep", "--trial", json.dumps(
+                    {"name": trial.name, "argv": trial.argv, "run_dir": str(trial.run_dir), "episodes": trial.episodes,
+                     "evaluate": trial.evaluate}), "--threads", str(threads)]
+                rc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True).returncode
+                if rc == 0:
+                    break
+                with lock:
+                    echo(f"trial {trial.name} exited with code {rc} (attempt {attempt + 1}); "
+                         + ("retrying: it resumes from its run dir" if attempt < max_failures else "giving up"))
+            with lock:
+                status[trial.name] = trial_status(trial)
+                echo(f"trial {trial.name}: {status[trial.name]}")
+
+    threads_ = [threading.Thread(target=worker) for _ in range(max(1, jobs))]
+    for t in threads_:
+        t.start()
+    for t in threads_:
+        t.join()
+    return status
+
+
+def _ray_trainable(config: dict) -> None:
+    """A Tune function trainable: one trial (``config["trial"]``), one result per episode."""
+    from ray import tune
+
+    t = config["trial"]
+    trial = Trial(t["name"], t["argv"], Path(t["run_dir"]), t["episodes"], t["evaluate"])
+
+    def report(row):
+        tune.report({k: v for k, v in row.items() if isinstance(v, (int, float)) and v == v})
+
+    run_trial(trial, t["threads"], on_episode=report)
+
+
+def run_ray(trials: list[Trial], cpus_per_trial: int, max_failures: int, address: str | None = None,
+            storage: str | None = None, num_cpus: int | None = None, echo=print) -> dict:
+    """The trials on Ray Tune: an embedded local Ray (no server, no dashboard) or the cluster at
+    ``address`` (``storage``: Tune's results on a filesystem all nodes share)."""
+    os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # no token file under the home folder for a local Ray
+    os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+    import ray
+    from ray import tune
+
+    t0 = time.perf_counter()
+    if address is None:
+        ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False, configure_logging=False,
+                 ignore_reinit_error=True)
+    else:
+        ray.init(address=address, log_to_driver=False, ignore_reinit_error=True)
+    echo(f"engine: Ray {ray.__version__} ({'embedded, ' + str(int(ray.cluster_resources().get('CPU', 0))) + ' CPUs' if address is None else 'cluster at ' + address}), "
+         f"{cpus_per_trial} CPU(s) and torch thread(s) per trial; started in {time.perf_counter() - t0:.1f} s")
+    storage_path = str(Path(storage).resolve()) if storage else str((trials[0].run_dir.parents[1] / ".tune").resolve())
+    tuner = tune.Tuner(
+        tune.with_resources(_ray_trainable, {"cpu": cpus_per_trial}),
+        param_space={"trial": tune.grid_search([
+            {"name": t.name, "argv": t.argv, "run_dir": str(t.run_dir), "episodes": t.episodes,
+             "evaluate": t.evaluate, "threads": cpus_per_trial} for t in trials])},
+        tune_config=tune.TuneConfig(trial_name_creator=lambda tr: tr.config["trial"]["name"].replace("/", "_"),
+                                    trial_dirname_creator=lambda tr: tr.config["trial"]["name"].replace("/", "_")),
+        run_config=tune.RunConfig(name=f"softae-sweep-{int(time.time())}", storage_path=storage_path,
+                                  failure_config=tune.FailureConfig(max_failures=max_failures), verbose=0),
+    )
+    tuner.fit()
+    if address is None:
+        ray.shutdown()
+    return {t.name: trial_status(t) for t in trials}
+
+
+def main(argv=None) -> int:
+    """Entry of a local trial subprocess (``--trial JSON``)."""
+    import argparse
+
+    p = argparse.ArgumentParser()
+    p.add_argument("--trial", required=True)
+    p.add_argument("--threads", type=int, default=1)
+    args = p.parse_args(argv)
+    d = json.loads(args.trial)
+    run_trial(Trial(d["name"], d["argv"], Path(d["run_dir"]), d["episodes"], d["evaluate"]), args.threads)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
