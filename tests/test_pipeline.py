@@ -211,3 +211,25 @@ def test_reference_returns_are_seeded_and_tell_random_from_no_control():
     assert len(zero) == 2 and zero != rand
     with pytest.raises(ValueError, match="'greedy'"):
         reference_returns("Pendulum-v1", "swingup", "greedy")
+
+
+def test_batched_zero_shot_evaluation_sees_the_same_episodes(tmp_path):
+    """E episodes side by side with one planner call per step: the same seeded initial states as
+    one after another, reproducible, and per-episode returns and metrics."""
+    from torchrl_softae.pipeline.evaluate import load_run, zero_shot
+
+    run = tmp_path / "run"
+    cfg = make_config("Pendulum-hanging", "softae", ["model.num_cells=32", "model.depth=2", "train.epochs=2",
+                                                    "planner.num_candidates=16", "planner.top_k=4",
+                                                    "planner.optim_steps=2", "planner.horizon=3", "heldout_size=50"],
+                      episodes=1, episode_length=20, wandb="disabled")
+    explore(cfg, run, progress=False, echo=None)
+    cfg, model, _ = load_run(run)
+    task = __import__("torchrl_softae.tasks", fromlist=["tasks_for"]).tasks_for("Pendulum-hanging")["swingup"]
+    task = type(task)(**{**task.__dict__, "horizon": 15})
+    a = zero_shot(cfg, model, task, episodes=3, seed=5, progress=False, batched=True)
+    b = zero_shot(cfg, model, task, episodes=3, seed=5, progress=False, batched=True)
+    c = zero_shot(cfg, model, task, episodes=3, seed=5, progress=False, batched=False)
+    assert a == b and len(a["returns"]) == 3 and "upright_fraction_last_half" in a["metrics"][0]
+    assert len(set(a["returns"])) == 3  # three different episodes, not one repeated
+    assert a["initial_states"] == c["initial_states"]  # the same seeded episodes as one after another

@@ -225,3 +225,35 @@ def test_torchrl_mppi_plans_over_the_model_env():
     with torch.no_grad():
         a = planner(TensorDict({"observation": torch.randn(3)}, []))["action"]
     assert a.shape == (2,) and a.abs().max() <= 1
+
+
+def test_tensor_loop_matches_the_torchrl_stack():
+    """The model env's tight tensor loop gives exactly what stepping the TorchRL stack gives, and a
+    stack with a transform it does not know falls back to env.step."""
+    from torchrl.envs import RewardScaling
+
+    from torchrl_softae.tasks import Task, TaskReward
+
+    task = Task("t", lambda s, a, s2: -(s2 - 0.3).square().sum(-1) - 0.1 * a.square().sum(-1), 4)
+    cases = [
+        (_model_env("mean"), [UncertaintyReward()], 1),
+        (_model_env("optimistic"), [HallucinatedControl(beta=1.5), UncertaintyReward()], 1),
+        (_model_env("optimistic"), [HallucinatedControl(beta=2.0), TaskReward(task, action_dim=2)], 1),
+        (_model_env("sample", aleatoric_noise=False), [UncertaintyReward()], 3),
+    ]
+    for base, transforms, particles in cases:
+        tenv = TransformedEnv(base, Compose(*transforms))
+        assert base._tensor_stack(tenv) is not None
+        d = tenv.action_spec.shape[-1]
+        obs = torch.randn(2, 1, 1, 3).expand(2, 5, particles, 3)
+        acts = (torch.rand(2, 5, 1, 4, d) * 2 - 1).expand(2, 5, particles, 4, d)
+        member = torch.arange(particles).expand(2, 5, particles) % 5 if particles > 1 else None
+        fast = base._returns_on_tensors(base._tensor_stack(tenv), obs, acts, member)
+        slow = base._returns_through_step(tenv, obs, acts, member)
+        torch.testing.assert_close(fast, slow)
+    scaled = TransformedEnv(_model_env("mean"), Compose(UncertaintyReward(), RewardScaling(0.0, 2.0)))
+    assert scaled.base_env._tensor_stack(scaled) is None
+    obs_td = TensorDict({"observation": torch.randn(2, 3)}, [2])
+    acts = torch.rand(2, 4, 3, 2) * 2 - 1
+    torch.testing.assert_close(scaled.base_env.evaluate_action_sequences(obs_td, acts, num_particles=1, env=scaled),
+                               rollout_returns(scaled, obs_td, acts))

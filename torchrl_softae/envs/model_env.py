@@ -7,9 +7,9 @@ import math
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase, ModelBasedEnvBase
+from torchrl.envs import Compose, EnvBase, ModelBasedEnvBase, TransformedEnv
 
-from torchrl_softae.modules.planners.contract import ActionSequenceEvaluator
+from torchrl_softae.modules.planners.contract import ActionSequenceEvaluator, PlanningTransform
 from torchrl_softae.modules.ensemble import EnsembleWorldModel, ensemble_std
 from torchrl_softae.modules.precision import resolve_planning_dtype
 
@@ -264,22 +264,62 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             if bool(((action_sequences < low - 1e-6) | (action_sequences > high + 1e-6)).any()):
                 raise ValueError(f"EnsembleModelEnv.evaluate_action_sequences: action sequences leave the action "
                                  f"spec [{float(low.min()):.4g}, {float(high.max()):.4g}]")
-        td = initial_state.select(*self.state_keys).reshape(B, 1, 1).expand(B, N, P).clone()
+        obs = initial_state.get("observation").reshape(B, 1, 1, -1).expand(B, N, P, -1)
+        member = None
         if self.mode == "sample" and P > 1:
             L = self.world_model.ensemble_size
             offset = torch.randint(L, (B, N, 1), generator=generator, device=action_sequences.device)
-            td.set(self.member_key, (torch.arange(P, device=action_sequences.device) + offset) % L)
+            member = (torch.arange(P, device=action_sequences.device) + offset) % L
         acts = action_sequences.unsqueeze(2).expand(B, N, P, H, d)
-        ret = torch.zeros(B, N, P, 1, device=action_sequences.device)
+        stack = self._tensor_stack(env)
         with self._planning(precision):
-            for h in range(H):
-                td.set(env.action_key, acts[..., h, :])
-                nxt = env.step(td).get("next")
-                ret += nxt.get("reward").reshape(B, N, P, -1)[..., :1].float()
-                # carry the next state and the particle's member (TS-inf) to the next step
-                carried = nxt.select(*self.state_keys)
-                if self.member_key in td.keys():
-                    carried.set(self.member_key, td.get(self.member_key))
-                td = carried
+            if stack is not None:
+                ret = self._returns_on_tensors(stack, obs, acts, member)
+            else:
+                ret = self._returns_through_step(env, obs, acts, member)
         ret = ret.squeeze(-1).mean(-1)
         return torch.where(torch.isfinite(ret), ret, torch.full_like(ret, -math.inf))
+
+    def _tensor_stack(self, env: EnvBase) -> list | None:
+        """The transforms between ``env`` and this env, if every one can act on plain tensors."""
+        if env is self:
+            return []
+        if not (isinstance(env, TransformedEnv) and env.base_env is self):
+            return None
+        transforms = list(env.transform) if isinstance(env.transform, Compose) else [env.transform]
+        return transforms if all(isinstance(t, PlanningTransform) for t in transforms) else None
+
+    def _returns_on_tensors(self, stack, obs, acts, member) -> torch.Tensor:
+        """The horizon loop on plain tensors (no TensorDict, no spec work per step): the same
+        arithmetic as stepping the TorchRL stack (``test_tensor_loop_matches_the_torchrl_stack``)."""
+        H = acts.shape[-2]
+        ret = torch.zeros(*obs.shape[:-1], 1, device=obs.device)
+        for h in range(H):
+            entries = {"action": acts[..., h, :]}
+            for t in reversed(stack):  # inverse transforms run outermost first, as in TorchRL
+                entries = t.plan_action(entries)
+            nxt, sigma = self.propagate(obs, entries["action"], entries.get("eta"), member)
+            reward = torch.zeros_like(ret)
+            for t in stack:
+                reward = t.plan_reward(obs, entries["action"], nxt, sigma, reward)
+            ret += reward.reshape(ret.shape).float()
+            obs = nxt
+        return ret
+
+    def _returns_through_step(self, env, obs, acts, member) -> torch.Tensor:
+        """Any transform stack: TorchRL's ``env.step`` on a tensordict per horizon step."""
+        B, N, P, H, _ = acts.shape
+        td = TensorDict({"observation": obs}, [B, N, P], device=obs.device)
+        if member is not None:
+            td.set(self.member_key, member)
+        ret = torch.zeros(B, N, P, 1, device=obs.device)
+        for h in range(H):
+            td.set(env.action_key, acts[..., h, :])
+            nxt = env.step(td).get("next")
+            ret += nxt.get("reward").reshape(B, N, P, -1)[..., :1].float()
+            # carry the next state and the particle's member (TS-inf) to the next step
+            carried = nxt.select(*self.state_keys)
+            if member is not None:
+                carried.set(self.member_key, member)
+            td = carried
+        return ret

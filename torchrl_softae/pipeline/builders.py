@@ -48,7 +48,7 @@ class PlannerPolicy(RealActionPolicy):
         self.seconds += time.perf_counter() - t
         self.calls += 1
         if self.progress is not None:
-            self.progress.update(1)
+            self.progress.update(max(1, tensordict.numel()))  # a batch of states is that many env steps
         return tensordict
 
 

@@ -46,7 +46,7 @@ def _task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for) -
     real = make_real_env(get_env_entry(env), task.horizon)
     reward = TaskReward(task)
     real.append_transform(reward)
-    returns, metrics = [], []
+    returns, metrics, starts = [], [], []
     for i in range(episodes):
         s = episode_seed(seed, i)
         seed_everything(s)
@@ -54,12 +54,13 @@ def _task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for) -
         policy = policy_for(real, s, episode_task)
         real.set_seed(s)
         traj = real.rollout(task.horizon, policy, break_when_any_done=True)
+        starts.append(traj[0]["observation"].tolist())
         returns.append(float(traj["next", "reward"].sum()))
         metrics.append(episode_task.metrics(traj))
         if episode_task is not task:
             metrics[-1].update({f"target_{k}": v for k, v in episode_task.params.items()})
     real.close()
-    return {"returns": returns, "metrics": metrics}
+    return {"returns": returns, "metrics": metrics, "initial_states": starts}
 
 
 def eval_file_name(task: str, planner_overrides: list[str] | None = None) -> str:
@@ -87,11 +88,15 @@ def zero_shot(
     seed: int = 0,
     propagation: str = "mean",
     progress: bool = True,
+    batched: bool = True,
 ) -> dict:
     """MPC with the task reward on the learned model, acting on the real env.
 
-    Returns ``{"returns": [...], "metrics": [{...}, ...]}``, one entry per episode; deterministic
-    for a given seed.
+    ``batched``: the episodes run side by side, one env each, and the planner plans for all of
+    their states in one call per step (a task family with a target per episode runs one episode
+    after another). Initial states are the same either way (seeded per episode); the planner's
+    random draws differ. Returns ``{"returns": [...], "metrics": [{...}, ...]}``, one entry per
+    episode; deterministic for a given seed.
     """
     bar = None
     if progress:
@@ -102,10 +107,56 @@ def zero_shot(
     def planner(real, s, episode_task):
         return task_policy(cfg, model, episode_task, real.action_spec, propagation, seed=s, progress=bar)
 
-    res = _task_rollouts(cfg.env, task, episodes, seed, planner)
+    if batched and episodes > 1 and task.instantiate is None:
+        res = _task_rollouts_batched(cfg.env, task, episodes, seed, planner)
+    else:
+        res = _task_rollouts(cfg.env, task, episodes, seed, planner)
     if bar is not None:
         bar.close()
     return res
+
+
+def _task_rollouts_batched(env: str, task: Task, episodes: int, seed: int, policy_for) -> dict:
+    """:func:`_task_rollouts` with the episodes side by side: E real envs seeded like the
+    sequential episodes, one policy call per step for the ``(E,)`` batch of their states. An
+    episode that ends stops stepping (its state keeps its slot in the batch)."""
+    from torchrl.envs.utils import step_mdp
+
+    entry = get_env_entry(env)
+    envs, tds = [], []
+    for i in range(episodes):
+        real = make_real_env(entry, task.horizon)
+        real.append_transform(TaskReward(task))
+        s = episode_seed(seed, i)
+        seed_everything(s)
+        real.set_seed(s)
+        envs.append(real)
+        tds.append(real.reset())
+    policy = policy_for(envs[0], episode_seed(seed, 0), task)
+    keys = list(policy.in_keys)
+    steps = [[] for _ in envs]
+    alive = [True] * episodes
+    for _ in range(task.horizon):
+        if not any(alive):
+            break
+        batch = torch.stack([td.select(*keys) for td in tds])
+        actions = policy(batch).get("action")
+        for i, real in enumerate(envs):
+            if not alive[i]:
+                continue
+            out = real.step(tds[i].clone().set("action", actions[i]))
+            steps[i].append(out)
+            if bool(out.get(("next", "done"))):
+                alive[i] = False
+            tds[i] = step_mdp(out)
+    returns, metrics, starts = [], [], []
+    for real, traj in zip(envs, steps):
+        traj = torch.stack(traj)
+        starts.append(traj[0]["observation"].tolist())
+        returns.append(float(traj["next", "reward"].sum()))
+        metrics.append(task.metrics(traj))
+        real.close()
+    return {"returns": returns, "metrics": metrics, "initial_states": starts}
 
 
 @torch.no_grad()

@@ -9,6 +9,8 @@ from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from torchrl_softae.modules.planners.contract import PlanningTransform
+
 __all__ = ["Task", "TaskReward"]
 
 RewardFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
@@ -56,7 +58,7 @@ class Task:
         return {} if self.metrics_fn is None else dict(self.metrics_fn(trajectory))
 
 
-class TaskReward(Transform):
+class TaskReward(Transform, PlanningTransform):
     """Replaces the env's reward with ``task.reward(s, a, s')``.
 
     Works on the real env (the task reward then also is what is reported) and on an
@@ -81,6 +83,11 @@ class TaskReward(Transform):
         r = self.task.reward(obs, act, nxt).to(nxt.dtype)
         next_tensordict.set("reward", r)
         return next_tensordict
+
+    def plan_reward(self, observation, action, next_observation, epistemic_std, reward):
+        if self.action_dim is not None:
+            action = action[..., : self.action_dim]
+        return self.task.reward(observation, action, next_observation).to(next_observation.dtype)
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         return next_tensordict

@@ -7,13 +7,15 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded, Composite
 from torchrl.envs.transforms import Transform
 
+from torchrl_softae.modules.planners.contract import PlanningTransform
+
 __all__ = ["HallucinatedControl", "RealActionPolicy", "DEFAULT_BETA"]
 
 #: the confidence-set width [beta] of the paper (Table S6, every robot)
 DEFAULT_BETA = 2.0
 
 
-class HallucinatedControl(Transform):
+class HallucinatedControl(Transform, PlanningTransform):
     """Widens the action from ``a`` (d_a) to ``[a, eta]`` (d_a + d_s) with ``eta in [-1, 1]^{d_s}``.
 
     On the way in (``inv``) the planner's action is split: the first d_a entries go to
@@ -83,6 +85,10 @@ class HallucinatedControl(Transform):
                 f"= d_a {self.action_dim} + d_s {self.state_dim}"
             )
         return action[..., : self.action_dim], self.beta * action[..., self.action_dim :]
+
+    def plan_action(self, entries: dict) -> dict:
+        action, eta = self.split(entries[self.action_key])
+        return {**entries, self.action_key: action, self.eta_key: eta}
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         action, eta = self.split(tensordict.get(self.action_key))

@@ -6,10 +6,12 @@ from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from torchrl_softae.modules.planners.contract import PlanningTransform
+
 __all__ = ["UncertaintyReward"]
 
 
-class UncertaintyReward(Transform):
+class UncertaintyReward(Transform, PlanningTransform):
     """Sets ``reward = || sigma / scale ||_ord`` from the model env's epistemic std.
 
     Summed over the planning horizon by the planner, this is the active-exploration objective
@@ -55,6 +57,9 @@ class UncertaintyReward(Transform):
         if self.ord == 2.0:  # the common case, without linalg's dispatch overhead
             return sigma.square().sum(-1, keepdim=True).sqrt()
         return torch.linalg.vector_norm(sigma, ord=self.ord, dim=-1, keepdim=True)
+
+    def plan_reward(self, observation, action, next_observation, epistemic_std, reward):
+        return self.reward_from_sigma(epistemic_std)
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         sigma = next_tensordict.get(self.in_keys[0], None)

@@ -27,7 +27,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
-__all__ = ["ActionSequenceEvaluator", "rollout_returns", "PLANNING_PRECISIONS"]
+__all__ = ["ActionSequenceEvaluator", "PlanningTransform", "rollout_returns", "PLANNING_PRECISIONS"]
 
 PLANNING_PRECISIONS = ("fp32", "bf16", "auto")
 
@@ -70,6 +70,22 @@ class ActionSequenceEvaluator(abc.ABC):
             ``(B, N)`` returns summed over the horizon and averaged over particles; a candidate
             whose return is NaN/inf gets ``-inf`` (it never wins).
         """
+
+
+class PlanningTransform:
+    """Mixin of TorchRL transforms that can also act on plain tensors, so that a model env may score
+    sequences in a tight tensor loop (no TensorDict per step) when every transform of its stack is
+    one. The transform's TorchRL methods and these two must agree (tested).
+    """
+
+    def plan_action(self, entries: dict) -> dict:
+        """The action entries on their way to the model env (``{"action": (*B, d)}`` in)."""
+        return entries
+
+    def plan_reward(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor,
+                    epistemic_std: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
+        """The reward ``(*B, 1)`` after this transform, given the one before it."""
+        return reward
 
 
 class _ReplayActions(TensorDictModuleBase):
