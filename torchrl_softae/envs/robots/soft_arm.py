@@ -324,19 +324,25 @@ def heldout_transitions(n_targets: int, seed: int, observed_points: int = 5, max
         it = tqdm(it, desc="held-out arm rollouts", unit="target")
     for _ in it:
         goal = rng.uniform(-1, 1, 12)
-        target = settle_tip(env, goal)
-        obs, info = env.reset(options={"target": target})
-        ctrl = RampController(goal, rate=rng.uniform(0.04, 0.2))
-        for _ in range(max_steps):
-            a = ctrl()
-            nxt, _, term, _, info = env.step(a)
-            if term:
-                break
-            obs_l.append(obs), act_l.append(a), nxt_l.append(nxt)
-            obs = nxt
-            if info["distance"] < tolerance:
-                break
+        _reach(env, goal, settle_tip(env, goal), rng.uniform(0.04, 0.2), max_steps, tolerance, (obs_l, act_l, nxt_l))
     return {"observation": np.array(obs_l), "action": np.array(act_l), "next_observation": np.array(nxt_l)}
+
+
+def _reach(env: SoftArmEnv, goal, target, rate: float, max_steps: int, tolerance: float, out: tuple) -> None:
+    """One :class:`RampController` rollout from rest toward ``target`` (the settled tip of
+    ``goal``), its transitions appended to the lists ``out``, trimmed once within ``tolerance``."""
+    obs_l, act_l, nxt_l = out
+    obs, info = env.reset(options={"target": target})
+    ctrl = RampController(goal, rate=rate)
+    for _ in range(max_steps):
+        a = ctrl()
+        nxt, _, term, _, info = env.step(a)
+        if term:
+            break
+        obs_l.append(obs), act_l.append(a), nxt_l.append(nxt)
+        obs = nxt
+        if info["distance"] < tolerance:
+            break
 
 
 # ---------------------------------------------------------------------------- the paper's held-out set
@@ -403,19 +409,8 @@ def workspace_heldout(n_targets: int, seed: int, observed_points: int = 5, contr
 
         it = tqdm(it, desc="held-out arm targets", unit="target", disable=None)  # no bar in a log file
     for i in it:
-        target = settle_tip(env, goals[i], steps=settle_steps)
-        targets.append(target)
-        obs, info = env.reset(options={"target": target})
-        ctrl = RampController(goals[i], rate=0.5)
-        for _ in range(max_steps):
-            a = ctrl()
-            nxt, _, term, _, info = env.step(a)
-            if term:
-                break
-            obs_l.append(obs), act_l.append(a), nxt_l.append(nxt)
-            obs = nxt
-            if info["distance"] < tolerance:
-                break
+        targets.append(settle_tip(env, goals[i], steps=settle_steps))
+        _reach(env, goals[i], targets[-1], 0.5, max_steps, tolerance, (obs_l, act_l, nxt_l))
     return {"observation": np.array(obs_l), "action": np.array(act_l), "next_observation": np.array(nxt_l),
             "targets": np.array(targets)}
 
