@@ -170,3 +170,37 @@ def test_trainer_drops_non_finite_transitions_and_reads_replay_buffers():
     assert report.num_train + report.num_val == 39
     assert report.grad_steps == 2 * 1  # 35 train rows, batch 64 -> one step per epoch
     assert all(torch.isfinite(torch.tensor(report.train_loss)))
+
+
+def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_path, monkeypatch):
+    import json
+
+    from torchrl_softae.modules import paths
+
+    monkeypatch.setenv("TORCHRL_SOFTAE_CACHE", str(tmp_path))
+    monkeypatch.setattr(paths, "_MEMORY", {})
+    model = EnsembleWorldModel(6, 2, num_cells=32, depth=2).eval()
+    x = torch.randn(300, 8)
+    with torch.no_grad():
+        first = model._inference_path(x, torch.float32, None)
+        assert first in ("conv", "bmm")
+        stored = json.loads((tmp_path / "paths.json").read_text())
+        assert list(stored.values()) == [first] and "rows 512" in next(iter(stored))
+        monkeypatch.setattr(paths, "_MEMORY", {})  # a new process reads the disk: the same choice
+        assert model._inference_path(torch.randn(400, 8), torch.float32, None) == first
+        for forced in ("conv", "bmm"):
+            monkeypatch.setenv("SOFTAE_INFERENCE_PATH", forced)
+            assert model._inference_path(x, torch.float32, None) == forced
+        monkeypatch.delenv("SOFTAE_INFERENCE_PATH")
+        model.inference_path = "bmm"
+        out_bmm = model.network(model.input_normalizer.normalize(x))[0]
+        model.inference_path = "conv"
+        out_conv = model.network(model.input_normalizer.normalize(x))[0]
+        torch.testing.assert_close(out_bmm, out_conv, rtol=1e-4, atol=1e-5)  # the same function either way
+
+
+def test_auto_precision_is_fp32_where_bf16_is_not_native(monkeypatch):
+    from torchrl_softae.modules import precision
+
+    monkeypatch.setattr(precision, "fast_bf16_available", lambda: False)
+    assert EnsembleWorldModel(3, 1, num_cells=8, depth=1).auto_planning_dtype() is None

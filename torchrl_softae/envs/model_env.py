@@ -229,7 +229,8 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         were checked once, as a whole)."""
         model = self.world_model
         prev_dtype, prev_check = model.planning_dtype, self._check_actions
-        model.planning_dtype = resolve_planning_dtype(precision, self.device)
+        # "auto": bf16 only where it measures faster for this ensemble on this machine
+        model.planning_dtype = model.auto_planning_dtype() if precision == "auto" else resolve_planning_dtype(precision)
         self._check_actions = False
         try:
             yield

@@ -15,6 +15,7 @@ input ``(s, a)`` together with a bounded log-variance (PETS soft bounds). In ori
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 
 import torch
@@ -22,6 +23,10 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torch.nn import functional as F
+
+from torchrl_softae.modules import paths
+from torchrl_softae.modules.paths import INFERENCE_PATHS
+from torchrl_softae.modules.precision import resolve_planning_dtype
 
 __all__ = ["EnsembleLinear", "Normalizer", "EnsembleWorldModel", "ensemble_std"]
 
@@ -279,7 +284,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         else:
             lowp = self.planning_dtype or torch.float32
             cols = None if (want_logvar or not self.probabilistic) else d  # both heads in one matmul
-            if x.dim() == 2 and self._use_grouped_conv(x):
+            if x.dim() == 2 and self._inference_path(x, lowp, cols) == "conv":
                 y = self._network_grouped_conv(x, lowp, cols)
             else:
                 y = self._network_bmm(x, lowp, cols)
@@ -287,9 +292,48 @@ class EnsembleWorldModel(TensorDictModuleBase):
             return y[..., :d], None
         return y[..., :d], (self._bound_logvar(y[..., d:]) if bound_logvar else y[..., d:])
 
-    @staticmethod
-    def _use_grouped_conv(x: torch.Tensor) -> bool:
-        return x.device.type == "cpu" and torch.backends.mkldnn.is_available() and torch.backends.mkldnn.enabled
+    #: ``"auto"`` (measured once per device, dtype and row count; see :mod:`torchrl_softae.modules.paths`),
+    #: ``"conv"`` or ``"bmm"``; the environment variable ``SOFTAE_INFERENCE_PATH`` sets the default
+    inference_path: str = "auto"
+
+    def _inference_path(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> str:
+        """Grouped convolutions (oneDNN, CPU only) or batched matmuls for a shared ``(N, in)`` input."""
+        if x.device.type != "cpu" or not (torch.backends.mkldnn.is_available() and torch.backends.mkldnn.enabled):
+            return "bmm"
+        forced = self.inference_path if self.inference_path != "auto" else os.environ.get("SOFTAE_INFERENCE_PATH", "auto")
+        if forced in INFERENCE_PATHS:
+            return forced
+        rows = 1 << max(int(x.shape[0]) - 1, 1).bit_length()  # power-of-two row buckets
+        shapes = ",".join(f"{layer.in_features}x{layer.out_features}" for layer in self.layers)
+        key = f"ensemble {self.ensemble_size}|{shapes}|{dtype}|rows {rows}|cols {cols}"
+        probe = torch.randn(rows, x.shape[1], dtype=x.dtype, generator=torch.Generator().manual_seed(0))
+        return paths.choose(key, {"conv": lambda: self._network_grouped_conv(probe, dtype, cols),
+                                  "bmm": lambda: self._network_bmm(probe, dtype, cols)})
+
+    @torch.no_grad()
+    def auto_planning_dtype(self, rows: int = 2048) -> torch.dtype | None:
+        """``precision="auto"``: bf16 where this device has native bf16 *and* the ensemble's
+        inference measures faster in it (once per process and machine), else ``None`` (fp32)."""
+        device = self.input_normalizer.loc.device
+        if resolve_planning_dtype("auto", device) is None:
+            return None
+        rows = 1 << max(rows - 1, 1).bit_length()
+        probe = torch.randn(rows, self.observation_dim + self.action_dim, device=device,
+                            generator=torch.Generator(device=device).manual_seed(0))
+        prev = self.planning_dtype
+
+        def run(dtype):
+            def fn():
+                self.planning_dtype = dtype
+                try:
+                    self.network(probe, with_logvar=False)
+                finally:
+                    self.planning_dtype = prev
+            return fn
+
+        shapes = ",".join(f"{layer.in_features}x{layer.out_features}" for layer in self.layers)
+        key = f"precision|{device.type}|ensemble {self.ensemble_size}|{shapes}|rows {rows}"
+        return torch.bfloat16 if paths.choose(key, {"fp32": run(None), "bf16": run(torch.bfloat16)}) == "bf16" else None
 
     def _network_grouped_conv(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
         """Inference on a shared ``(N, in)`` input: the ensemble as grouped 1x1 convolutions.

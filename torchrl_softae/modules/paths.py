@@ -1,0 +1,95 @@
+"""Measured choices of how to run the ensemble at inference: which kernels (grouped 1x1
+convolutions through oneDNN, or batched matmuls through MKL/cuBLAS) and whether bf16 pays.
+
+Which is faster depends on the CPU, not on its vendor (AMD EPYC without AMX: oneDNN's fp32 GEMM
+beats MKL's AVX2 path; Intel with AMX: MKL's fp32 GEMM beats oneDNN's), so each choice is timed
+once on the real shapes at first use and cached for the process and on disk
+(``$TORCHRL_SOFTAE_CACHE/paths.json``, keyed by CPU model, torch version and thread count), so a
+resumed run makes the same choice as the run it resumes. ``SOFTAE_INFERENCE_PATH=conv|bmm``
+(or ``EnsembleWorldModel.inference_path``) fixes it for reproducibility.
+"""
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import threading
+import time
+from pathlib import Path
+
+import torch
+
+__all__ = ["choose", "cache_path", "INFERENCE_PATHS"]
+
+INFERENCE_PATHS = ("conv", "bmm")
+_LOCK = threading.RLock()  # re-entrant: a measured candidate may itself make a measured choice
+_MEMORY: dict[str, str] = {}
+
+
+def cache_path() -> Path:
+    root = os.environ.get("TORCHRL_SOFTAE_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")), "torchrl_softae")
+    return Path(root) / "paths.json"
+
+
+def _machine() -> str:
+    model = "unknown"
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model}|torch {torch.__version__}|{torch.get_num_threads()} threads"
+
+
+def _timed(fn, rounds: int = 3) -> float:
+    fn()  # warm-up: allocations, weight caches, oneDNN primitive creation
+    return statistics.median(_once(fn) for _ in range(rounds))
+
+
+def _once(fn) -> float:
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
+def choose(key: str, candidates: dict) -> str:
+    """The fastest of ``candidates`` (name -> zero-argument callable) for ``key``: measured once
+    (interleaved rounds, median), then remembered in this process and on disk."""
+    full = f"{_machine()}|{key}"
+    with _LOCK:
+        if full in _MEMORY:
+            return _MEMORY[full]
+        path = cache_path()
+        disk = {}
+        if path.exists():
+            try:
+                disk = json.loads(path.read_text())
+            except (OSError, json.JSONDecodeError):
+                disk = {}
+        if disk.get(full) in candidates:
+            _MEMORY[full] = disk[full]
+            return disk[full]
+        times = {name: [] for name in candidates}
+        for fn in candidates.values():
+            fn()  # warm-up
+        for _ in range(3):
+            for name, fn in candidates.items():
+                times[name].append(_once(fn))
+        best = min(times, key=lambda n: statistics.median(times[n]))
+        _MEMORY[full] = best
+        try:  # merge with what was written meanwhile (nested choices, other processes)
+            disk = json.loads(path.read_text()) if path.exists() else {}
+        except (OSError, json.JSONDecodeError):
+            disk = {}
+        disk[full] = best
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+            tmp.write_text(json.dumps(disk, indent=1, sort_keys=True))
+            os.replace(tmp, path)
+        except OSError:
+            pass  # a read-only home: the choice holds for this process
+        return best
