@@ -188,7 +188,8 @@ def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
         methods = _method_order(by_method)
         seeds = sorted({len(by_method[m]) for m in methods})
         budget = f"{episodes} episodes = {transitions} transitions per run"
-        seed_text = f"{seeds[0]} seeds" if len(seeds) == 1 else f"{min(seeds)}-{max(seeds)} seeds"
+        seed_text = (f"{seeds[0]} seed{'s' * (seeds[0] != 1)}" if len(seeds) == 1
+                     else f"{min(seeds)}-{max(seeds)} seeds")
         prefix = f"{env}_{transitions}tr_" if len(groups) > 1 else ""
         title = f"{env}, {budget}, {seed_text}"
 
@@ -201,6 +202,8 @@ def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
         for i, v in enumerate(vals):
             ax.plot(np.full(len(v), i), v, "k.", ms=4)
         ax.set_yscale("log")
+        allv = np.concatenate(vals)
+        ax.set_ylim(allv.min() / 3, allv.max() * 3)  # a decade of room: bar heights stay comparable
         ax.set_ylabel("held-out normalized MSE")
         ax.set_title(f"{title}\nbar: mean, whiskers: min-max, dots: seeds", fontsize=9)
         written.append(_save(fig, out_dir / f"{prefix}mse_bars.png"))
@@ -231,7 +234,7 @@ def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
             fig.suptitle(title, fontsize=11)
             written.append(_save(fig, out_dir / f"{prefix}task_returns.png"))
 
-        points = {f"{m} ({len(by_method[m])} seeds, cov. "
+        points = {f"{m} ({len(by_method[m])} seed{'s' * (len(by_method[m]) != 1)}, cov. "
                   f"{np.mean([s['history'][-1]['coverage'] for _, s in by_method[m]]):.2f})":
                   np.concatenate([_projected(r, entry) for r, _ in by_method[m]]) for m in methods}
         written.append(_coverage_panels(points, entry, f"coverage by method: {title}",
