@@ -204,3 +204,20 @@ def test_auto_precision_is_fp32_where_bf16_is_not_native(monkeypatch):
 
     monkeypatch.setattr(precision, "fast_bf16_available", lambda: False)
     assert EnsembleWorldModel(3, 1, num_cells=8, depth=1).auto_planning_dtype() is None
+
+
+def test_symlog_round_trip_and_a_symlog_model_predicts_in_original_units():
+    from torchrl_softae.modules import symexp, symlog
+
+    x = torch.tensor([-1e4, -3.0, -1e-3, 0.0, 2e-4, 5.0, 3e5])
+    torch.testing.assert_close(symexp(symlog(x)), x, rtol=1e-5, atol=1e-6)
+    # states spanning orders of magnitude: s' = 1.1 s + a
+    s = torch.cat([torch.randn(600, 1) * 1000, torch.randn(600, 1) * 0.01], -1)
+    a = torch.rand(600, 1) * 2 - 1
+    td = TensorDict({"observation": s, "action": a, ("next", "observation"): 1.1 * s + a}, [600])
+    model = EnsembleWorldModel(2, 1, num_cells=64, depth=2, symlog_observations=True)
+    EnsembleTrainer(EnsembleLoss(model), lr=3e-3, epochs=60).fit(td)
+    mu, sigma, ale, members = model.predict(s[:100], a[:100])
+    assert members.shape == (5, 100, 2) and (ale > 0).all() and (sigma >= 0).all()
+    rel = ((mu - (1.1 * s[:100] + a[:100])).abs() / (1.1 * s[:100] + a[:100]).abs().clamp_min(0.05)).median()
+    assert rel < 0.2, rel  # predictions in original units, large and small dimensions alike

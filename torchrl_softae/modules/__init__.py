@@ -1,5 +1,5 @@
 """Learned models and planners."""
-from torchrl_softae.modules.ensemble import EnsembleLinear, EnsembleWorldModel, Normalizer, ensemble_std
+from torchrl_softae.modules.ensemble import EnsembleLinear, EnsembleWorldModel, Normalizer, ensemble_std, symexp, symlog
 from torchrl_softae.modules.planners import ICEMPlanner, MPPIPlanner, SequencePlannerBase, colored_noise
 from torchrl_softae.modules.precision import fast_bf16_available, resolve_planning_dtype
 
@@ -8,6 +8,8 @@ __all__ = [
     "EnsembleWorldModel",
     "Normalizer",
     "ensemble_std",
+    "symlog",
+    "symexp",
     "ICEMPlanner",
     "MPPIPlanner",
     "SequencePlannerBase",

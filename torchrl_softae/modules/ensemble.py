@@ -28,7 +28,17 @@ from torchrl_softae.modules import paths
 from torchrl_softae.modules.paths import INFERENCE_PATHS
 from torchrl_softae.modules.precision import resolve_planning_dtype
 
-__all__ = ["EnsembleLinear", "Normalizer", "EnsembleWorldModel", "ensemble_std"]
+__all__ = ["EnsembleLinear", "Normalizer", "EnsembleWorldModel", "ensemble_std", "symlog", "symexp"]
+
+
+def symlog(x: torch.Tensor) -> torch.Tensor:
+    """``sign(x) log(1 + |x|)``: compresses large magnitudes, identity-like near 0 (DreamerV3)."""
+    return torch.sign(x) * torch.log1p(x.abs())
+
+
+def symexp(y: torch.Tensor) -> torch.Tensor:
+    """The inverse of :func:`symlog`: ``sign(y) (exp(|y|) - 1)``."""
+    return torch.sign(y) * torch.expm1(y.abs())
 
 
 def ensemble_std(members: torch.Tensor, mean: torch.Tensor | None = None) -> torch.Tensor:
@@ -126,6 +136,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
         in_keys: keys of the state ``s`` (d_s) and action ``a`` (d_a). Default ``("observation", "action")``.
         out_keys: keys of the next-state mean [mu], epistemic std [sigma] and aleatoric std.
             Default ``("loc", "epistemic_std", "aleatoric_std")``.
+        symlog_observations (bool): model the state in symlog space (:func:`symlog` before the
+            input normalizer, :func:`symexp` after the prediction), for states whose dimensions
+            span orders of magnitude; predictions, sigma and the aleatoric std (first order) are
+            returned in original units. Default ``False``.
         device: where parameters and normalizers are created (TorchRL convention; ``.to()`` later
             works too). The CPU-only inference path (oneDNN grouped convolutions) is chosen per
             input device.
@@ -152,6 +166,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         max_logvar: float = 0.5,
         in_keys: Sequence = ("observation", "action"),
         out_keys: Sequence = ("loc", "epistemic_std", "aleatoric_std"),
+        symlog_observations: bool = False,
         device=None,
     ):
         for name, value, low in (
@@ -172,6 +187,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         self.action_dim = action_dim
         self.ensemble_size = ensemble_size
         self.probabilistic = probabilistic
+        self.symlog_observations = bool(symlog_observations)
         sizes = [observation_dim + action_dim] + [num_cells] * depth
         out = 2 * observation_dim if probabilistic else observation_dim
         self.layers = nn.ModuleList(
@@ -190,10 +206,19 @@ class EnsembleWorldModel(TensorDictModuleBase):
     # ------------------------------------------------------------------ data fitting
     @torch.no_grad()
     def fit_normalizers(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor) -> None:
-        """Fit input (s, a) and output (s' - s) normalizers from transitions of shape (N, d)."""
+        """Fit input (s, a) and output (s' - s) normalizers from transitions of shape (N, d)
+        (in symlog space with ``symlog_observations``)."""
         self._check(observation, action)
-        self.input_normalizer.fit(torch.cat([observation, action], -1))
-        self.output_normalizer.fit(next_observation - observation)
+        obs, nxt = self._to_model_space(observation), self._to_model_space(next_observation)
+        self.input_normalizer.fit(torch.cat([obs, action], -1))
+        self.output_normalizer.fit(nxt - obs)
+
+    def _to_model_space(self, state: torch.Tensor) -> torch.Tensor:
+        return symlog(state) if self.symlog_observations else state
+
+    def normalized_target(self, observation: torch.Tensor, next_observation: torch.Tensor) -> torch.Tensor:
+        """The training target: the normalized state delta in the model's space, ``(..., d_s)``."""
+        return self.output_normalizer.normalize(self._to_model_space(next_observation) - self._to_model_space(observation))
 
     # ------------------------------------------------------------------ input validation
     def _check(self, observation: torch.Tensor, action: torch.Tensor) -> None:
@@ -419,7 +444,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         ``observation`` ``(N, d_s)`` and ``action`` ``(N, d_a)`` (shared by all members), or with a
         leading member dim ``(L, N, ...)`` (each member on its own minibatch, for training).
         """
-        x = self.input_normalizer.normalize(torch.cat([observation, action], -1))
+        x = self.input_normalizer.normalize(torch.cat([self._to_model_space(observation), action], -1))
         return self.network(x, with_logvar, bound_logvar)
 
     def predict_members(
@@ -442,7 +467,11 @@ class EnsembleWorldModel(TensorDictModuleBase):
         act = action.reshape(-1, self.action_dim)
         mean, logvar = self.normalized_members(obs, act, with_aleatoric, bound_logvar=member_index is None)
         out = self.output_normalizer
-        members = torch.addcmul(obs + out.loc, out.scale, mean)
+        members = torch.addcmul(self._to_model_space(obs) + out.loc, out.scale, mean)
+        # symexp'(y) = exp(|y|): the aleatoric std maps back to original units to first order
+        stretch = members.abs().exp() if self.symlog_observations else None
+        if self.symlog_observations:
+            members = symexp(members)
         shape = (self.ensemble_size, *batch, self.observation_dim)
         if not with_aleatoric:
             return members.reshape(shape), None
@@ -451,9 +480,13 @@ class EnsembleWorldModel(TensorDictModuleBase):
         elif member_index is not None:
             idx = member_index.reshape(1, -1, 1).expand(1, *logvar.shape[1:])
             ale = out.scale * (0.5 * self._bound_logvar(logvar.gather(0, idx).squeeze(0))).exp()
+            if stretch is not None:
+                ale = ale * stretch.gather(0, idx).squeeze(0)
             return members.reshape(shape), ale.reshape(*batch, self.observation_dim)
         else:
             ale = out.scale * (0.5 * logvar).exp()
+            if stretch is not None:
+                ale = ale * stretch
         return members.reshape(shape), ale.reshape(shape)
 
     def predict(

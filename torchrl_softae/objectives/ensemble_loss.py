@@ -86,7 +86,7 @@ class EnsembleLoss(LossModule):
                 f"EnsembleLoss: batch size {tuple(tensordict.batch_size)}, expected (B,) or (L={L}, B)"
             )
         model._check(obs, act)
-        target = model.output_normalizer.normalize(nxt - obs)
+        target = model.normalized_target(obs, nxt)
         mean, logvar = model.normalized_members(obs, act)
         if not per_member:
             target = target.expand(L, *target.shape)

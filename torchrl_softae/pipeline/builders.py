@@ -28,7 +28,7 @@ __all__ = ["build_world_model", "build_planner_policy", "build_exploration_polic
 def build_world_model(cfg: ModelConfig, observation_dim: int, action_dim: int, device=None) -> EnsembleWorldModel:
     return EnsembleWorldModel(
         observation_dim, action_dim, ensemble_size=cfg.ensemble_size, num_cells=cfg.num_cells,
-        depth=cfg.depth, probabilistic=cfg.probabilistic, device=device,
+        depth=cfg.depth, probabilistic=cfg.probabilistic, symlog_observations=cfg.symlog, device=device,
     )
 
 

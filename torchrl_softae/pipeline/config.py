@@ -35,6 +35,7 @@ class ModelConfig:
     num_cells: int = 256
     depth: int = 4
     probabilistic: bool = True
+    symlog: bool = False  # model the state in symlog space (on in the MBPO presets)
 
 
 @dataclass
