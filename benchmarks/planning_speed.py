@@ -197,7 +197,7 @@ def main():
             med, best = statistics.median(times[key]), min(times[key])
             if rows is None:  # iCEM adds xi*K kept elites (and the mean) to its samples
                 rows = (P + int(0.3 * K + 0.999)) * planner.effective_particles
-            iters = planner.last_info.get("iterations", I)
+            iters = getattr(planner, "last_info", {}).get("iterations", I)  # CEMPlanner keeps no info
             frac = flops_per_action(model, rows, H, iters) / best / (best_peak[dtype] * 1e9)
             row = dict(shape=name, d_s=d_s, d_a=d_a, H=H, planner=key, median_s=med, best_s=best, dtype=dtype,
                        speedup_vs_cem_median=base / med, fraction_of_peak=frac, iterations=iters, times=times[key])

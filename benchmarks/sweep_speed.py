@@ -3,7 +3,7 @@
     python benchmarks/sweep_speed.py           # ~10-15 minutes
 
 The grid of ``sweeps/pendulum_bench.yaml`` (Pendulum-v1, 4 methods x 3 seeds, quick preset,
-4 x 100 steps) three times into fresh roots, one after another on an otherwise idle machine:
+2 x 100 steps) three times into fresh roots, one after another on an otherwise idle machine:
 
   ray-1x2    Ray Tune, 1 run at a time with 2 CPUs / torch threads   (--cpus-per-trial 2)
   ray-2x1    Ray Tune, 2 runs at a time with 1 CPU / thread each     (--cpus-per-trial 1)
@@ -69,7 +69,7 @@ def ray_cost() -> dict:
 def main():
     work = Path(tempfile.mkdtemp(prefix="sweep_speed_"))
     res = {"cpu": platform.processor() or platform.machine(), "cores": len(os.sched_getaffinity(0)),
-           "grid": "Pendulum-v1, 4 methods x 3 seeds, quick preset, 4 episodes x 100 steps"}
+           "grid": "Pendulum-v1, 4 methods x 3 seeds, quick preset, 2 episodes x 100 steps"}
     res["ray_cost"] = ray_cost()
     for name, args in (("ray-1x2", ["--cpus-per-trial", "2"]), ("ray-2x1", ["--cpus-per-trial", "1"]),
                        ("local-2x1", ["--jobs", "2"])):
