@@ -233,3 +233,19 @@ def test_batched_zero_shot_evaluation_sees_the_same_episodes(tmp_path):
     assert a == b and len(a["returns"]) == 3 and "upright_fraction_last_half" in a["metrics"][0]
     assert len(set(a["returns"])) == 3  # three different episodes, not one repeated
     assert a["initial_states"] == c["initial_states"]  # the same seeded episodes as one after another
+
+
+def test_a_run_from_before_a_new_config_field_resumes(tmp_path):
+    """Config fields added later (e.g. model.symlog) take their defaults for older runs."""
+    run = tmp_path / "run"
+    argv = ["explore", "--env", "Pendulum-v1", "--preset", "quick", "--episode-length", "10", "--set", "heldout_size=50",
+            "--set", "train.epochs=1", "--set", "planner.horizon=2", "--wandb", "disabled", "--quiet", "--run-dir", str(run)]
+    assert main([*argv, "--episodes", "1"]) == 0
+    stored = json.loads((run / "config.json").read_text())
+    del stored["config"]["model"]["symlog"]  # as written before the field existed
+    (run / "config.json").write_text(json.dumps(stored))
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    del state["config"]["model"]["symlog"]
+    torch.save(state, run / "checkpoint.pt")
+    assert main([*argv, "--episodes", "2"]) == 0
+    assert len(RunDir(run).history()) == 2

@@ -45,8 +45,14 @@ def _flatten(d: dict, prefix="") -> dict:
     return out
 
 
+def _with_defaults(config: dict) -> dict:
+    """A stored config, flattened, with fields added since it was written at their defaults (so a
+    run from before a new config field resumes as it was)."""
+    return {**_flatten(ExploreConfig().to_dict()), **_flatten(config)}
+
+
 def _fixed_part(config: dict) -> dict:
-    return {k: v for k, v in _flatten(config).items() if k not in RESUMABLE_KEYS}
+    return {k: v for k, v in _with_defaults(config).items() if k not in RESUMABLE_KEYS}
 
 
 class Explorer:
@@ -79,7 +85,7 @@ class Explorer:
         stored = self.run.read_config()
         if stored is None:
             return None
-        old, new = _flatten(stored.get("config", {})), _flatten(self.cfg.to_dict())
+        old, new = _with_defaults(stored.get("config", {})), _flatten(self.cfg.to_dict())
         diff = [f"{k}: stored {old.get(k)!r} != requested {new.get(k)!r}"
                 for k in sorted(set(old) | set(new)) if k not in RESUMABLE_KEYS and old.get(k) != new.get(k)]
         if diff:
