@@ -15,26 +15,9 @@ import argparse
 import os
 import sys
 
-from torchrl_softae.pipeline.methods import METHOD_NAMES, get_method
-
-PRESETS = {
-    "paper": [],
-    # Small enough for a laptop-minute demo; the method is unchanged, only sizes/steps shrink.
-    "quick": [
-        "model.num_cells=128", "model.depth=3", "planner.num_candidates=100", "planner.top_k=10",
-        "planner.optim_steps=3", "planner.num_particles=5", "train.lr=1e-3", "train.epochs=20",
-        "train.max_grad_steps=600", "heldout_size=1000",
-    ],
-}
-
-
-def available_cores() -> int:
-    """Cores this process may run on (its CPU affinity, e.g. under ``taskset``), not the machine's."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
+from torchrl_softae.pipeline.arguments import PRESETS, available_cores, run_dir_for  # noqa: F401 (public)
+from torchrl_softae.pipeline.arguments import add_explore_args as _add_explore_args
+from torchrl_softae.pipeline.arguments import config_from_args as _config
 
 def _threads(n: int | None) -> int:
     import torch
@@ -48,51 +31,11 @@ def _threads(n: int | None) -> int:
     return n
 
 
-def _add_explore_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--env", default="Pendulum-v1", help="environment id (see `softae envs`); default Pendulum-v1")
-    p.add_argument("--method", default="softae", help=f"one of {', '.join(METHOD_NAMES)}; default softae")
-    p.add_argument("--episodes", type=int, default=None, help="exploration episodes N (default 10)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--run-dir", default=None, help="output folder; an existing run with the same settings resumes "
-                                                   "(default runs/ENV/METHOD-bBETA-sSEED)")
-    p.add_argument("--episode-length", type=int, default=None, help="exploration horizon T (env default)")
-    p.add_argument("--beta", type=float, default=None,
-                   help="optimism beta for the methods that use it (default: the paper's, Table S6)")
-    p.add_argument("--task", default=None, help="task optimized by hucrl (and nothing else)")
-    p.add_argument("--eval-every", type=int, default=None, help="zero-shot evaluate all tasks every K episodes (0 = never)")
-    p.add_argument("--preset", choices=sorted(PRESETS), default="paper",
-                   help="paper: Table S6/S7 sizes; quick: small model/planner for demos and tests")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override any config field, e.g. --set planner.horizon=5 --set train.lr=1e-4 (repeatable)")
-    p.add_argument("--wandb", choices=["offline", "online", "disabled"], default="offline",
-                   help="W&B tracking (default offline: no network needed; `wandb sync RUN/wandb/...` later)")
-    p.add_argument("--threads", type=int, default=None,
-                   help="torch threads (default: the cores this process may use). Two runs side by side on "
-                        "2 cores: give each --threads 1 (or taskset -c 0 / -c 1), else both slow down 10x+")
-    p.add_argument("--quiet", action="store_true",
-                   help="no progress output (a resumed run still says so in one line)")
-
-
 def _progress_style(args) -> tuple[bool, object]:
     """Bars on a terminal; one summary line per episode in a log file; nothing with --quiet."""
     if args.quiet:
         return False, None
     return sys.stderr.isatty(), print
-
-
-def _config(args):
-    from torchrl_softae.pipeline.config import make_config
-
-    overrides = PRESETS[args.preset] + list(args.overrides)
-    return make_config(
-        args.env, args.method, overrides, episodes=args.episodes, seed=args.seed, episode_length=args.episode_length,
-        beta=args.beta, task=args.task, eval_every=args.eval_every, wandb=args.wandb,
-    )
-
-
-def run_dir_for(cfg, root: str = "runs") -> str:
-    """``ROOT/ENV/NAME`` with the name the method table gives (beta only where the method uses it)."""
-    return os.path.join(root, cfg.env, get_method(cfg.method).run_name(cfg.seed, cfg.beta))
 
 
 def cmd_explore(args) -> int:

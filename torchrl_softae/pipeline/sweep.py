@@ -93,11 +93,10 @@ def _combinations(spec: dict) -> list[dict]:
 def expand(spec: dict, root: str | Path) -> tuple[list[Trial], int]:
     """Trials of a sweep, validated (every config checked before anything runs); returns the
     trials and the number of combinations dropped as duplicates (parameters a method ignores)."""
-    from torchrl_softae.pipeline.cli import _config, build_parser, run_dir_for
+    from torchrl_softae.pipeline.arguments import config_from_args, explore_parser, run_dir_for
 
-    parser = build_parser()
-    explore_parser = parser._subparsers._group_actions[0].choices["explore"]
-    flags = {o[2:].replace("-", "_") for a in explore_parser._actions for o in a.option_strings
+    parser = explore_parser()
+    flags = {o[2:].replace("-", "_") for a in parser._actions for o in a.option_strings
              if o.startswith("--")} - {"help", "run_dir"}
     for name in spec["parameters"]:
         if name.replace("-", "_") not in flags:
@@ -120,7 +119,7 @@ def expand(spec: dict, root: str | Path) -> tuple[list[Trial], int]:
             else:
                 argv.append(f"--{k.replace('_', '-')}={v}")
         try:
-            cfg = _config(parser.parse_args(argv))
+            cfg = config_from_args(parser.parse_args(argv[1:]))
         except SystemExit:
             raise ConfigError(f"sweep run {run}: the arguments {' '.join(argv[1:])} do not parse") from None
         except ConfigError as e:
@@ -164,12 +163,12 @@ def run_trial(trial: Trial, threads: int, on_episode=None) -> dict:
     """Explore (resuming) and evaluate one trial in this process; returns its last result row."""
     import torch
 
-    from torchrl_softae.pipeline.cli import _config, build_parser
+    from torchrl_softae.pipeline.arguments import config_from_args, explore_parser
     from torchrl_softae.pipeline.evaluate import evaluate_run
     from torchrl_softae.pipeline.explore import explore
 
     torch.set_num_threads(threads)
-    cfg = _config(build_parser().parse_args(["explore", *trial.argv]))
+    cfg = config_from_args(explore_parser().parse_args(trial.argv))
     history = explore(cfg, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
     row = dict(history[-1])
     if trial.evaluate and not _evaluated(trial):
