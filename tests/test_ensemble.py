@@ -187,6 +187,7 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
         stored = json.loads((tmp_path / "paths.json").read_text())
         assert list(stored.values()) == [first] and "rows 512" in next(iter(stored))
         monkeypatch.setattr(paths, "_MEMORY", {})  # a new process reads the disk: the same choice
+        model._path_memo.clear()
         assert model._inference_path(torch.randn(400, 8), torch.float32, None) == first
         for forced in ("conv", "bmm"):
             monkeypatch.setenv("SOFTAE_INFERENCE_PATH", forced)

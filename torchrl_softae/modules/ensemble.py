@@ -202,6 +202,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         # Reduced-precision planning: hidden 256x256 layers in this dtype (None = fp32).
         self.planning_dtype: torch.dtype | None = None
         self._inference_cache: dict = {}
+        self._path_memo: dict = {}  # measured choices (paths.choose) this model already looked up
 
     # ------------------------------------------------------------------ data fitting
     @torch.no_grad()
@@ -329,11 +330,15 @@ class EnsembleWorldModel(TensorDictModuleBase):
         if forced in INFERENCE_PATHS:
             return forced
         rows = 1 << max(int(x.shape[0]) - 1, 1).bit_length()  # power-of-two row buckets
+        memo = (dtype, rows, cols, torch.get_num_threads())
+        if memo in self._path_memo:  # the hot path: no key string, no probe tensor per forward
+            return self._path_memo[memo]
         shapes = ",".join(f"{layer.in_features}x{layer.out_features}" for layer in self.layers)
         key = f"ensemble {self.ensemble_size}|{shapes}|{dtype}|rows {rows}|cols {cols}"
         probe = torch.randn(rows, x.shape[1], dtype=x.dtype, generator=torch.Generator().manual_seed(0))
-        return paths.choose(key, {"conv": lambda: self._network_grouped_conv(probe, dtype, cols),
-                                  "bmm": lambda: self._network_bmm(probe, dtype, cols)})
+        self._path_memo[memo] = paths.choose(key, {"conv": lambda: self._network_grouped_conv(probe, dtype, cols),
+                                                   "bmm": lambda: self._network_bmm(probe, dtype, cols)})
+        return self._path_memo[memo]
 
     @torch.no_grad()
     def auto_planning_dtype(self, rows: int = 2048) -> torch.dtype | None:
@@ -343,6 +348,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
         if resolve_planning_dtype("auto", device) is None:
             return None
         rows = 1 << max(rows - 1, 1).bit_length()
+        memo = ("precision", device.type, rows, torch.get_num_threads())
+        if memo in self._path_memo:  # once per plan call: no probe tensor after the first
+            return self._path_memo[memo]
         probe = torch.randn(rows, self.observation_dim + self.action_dim, device=device,
                             generator=torch.Generator(device=device).manual_seed(0))
         prev = self.planning_dtype
@@ -358,7 +366,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
 
         shapes = ",".join(f"{layer.in_features}x{layer.out_features}" for layer in self.layers)
         key = f"precision|{device.type}|ensemble {self.ensemble_size}|{shapes}|rows {rows}"
-        return torch.bfloat16 if paths.choose(key, {"fp32": run(None), "bf16": run(torch.bfloat16)}) == "bf16" else None
+        choice = paths.choose(key, {"fp32": run(None), "bf16": run(torch.bfloat16)})
+        self._path_memo[memo] = torch.bfloat16 if choice == "bf16" else None
+        return self._path_memo[memo]
 
     def _network_grouped_conv(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
         """Inference on a shared ``(N, in)`` input: the ensemble as grouped 1x1 convolutions.
