@@ -16,6 +16,9 @@ PRESETS = {
         "model.num_cells=128", "model.depth=3", "planner.num_candidates=100", "planner.top_k=10",
         "planner.optim_steps=3", "planner.num_particles=5", "train.lr=1e-3", "train.epochs=20",
         "train.max_grad_steps=600", "heldout_size=1000",
+        # SAC on the model (MBPO methods, softae policy): same algorithm, smaller networks and budget
+        "policy.num_cells=128", "policy.depth=2", "policy.rollout_batch=100", "policy.updates_per_rollout=10",
+        "policy.updates_per_step=5", "policy.imagined_capacity=50000", "policy.lr=1e-3",
     ],
 }
 
@@ -38,7 +41,7 @@ def add_explore_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episode-length", type=int, default=None, help="exploration horizon T (env default)")
     p.add_argument("--beta", type=float, default=None,
                    help="optimism beta for the methods that use it (default: the paper's, Table S6)")
-    p.add_argument("--task", default=None, help="task optimized by hucrl (and nothing else)")
+    p.add_argument("--task", default=None, help="the task of the methods that optimize one (hucrl, mbpo, mbpo-ts)")
     p.add_argument("--eval-every", type=int, default=None, help="zero-shot evaluate all tasks every K episodes (0 = never)")
     p.add_argument("--preset", choices=sorted(PRESETS), default="paper",
                    help="paper: Table S6/S7 sizes; quick: small model/planner for demos and tests")

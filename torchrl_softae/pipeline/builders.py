@@ -96,12 +96,19 @@ def build_planner_policy(
 
 
 def build_exploration_policy(
-    cfg: ExploreConfig, model: EnsembleWorldModel, real_env: EnvBase, task: Task | None, seed: int, progress=None
+    cfg: ExploreConfig, model: EnsembleWorldModel, real_env: EnvBase, task: Task | None, seed: int, progress=None,
+    learner=None,
 ) -> TensorDictModuleBase:
-    """The data-collection policy of episode n for ``cfg.method`` (its record says how it plans)."""
+    """The data-collection policy of episode n for ``cfg.method`` (its record says how it acts):
+    random actions, iCEM on the model, or (``trains_policy``) the SAC policy of ``learner``, a
+    :class:`~torchrl_softae.pipeline.policy.PolicyLearner`, sampling as SAC explores."""
     method = get_method(cfg.method)
     if method.propagation is None:
         return RandomPolicy(real_env.action_spec)
+    if method.trains_policy:
+        if learner is None:
+            raise ValueError(f"method {method.name!r} collects with its SAC policy: pass its learner")
+        return learner.policy(deterministic=False)
     scale = None
     if method.reward == "uncertainty" and cfg.normalize_uncertainty and bool(model.input_normalizer.fitted):
         # sigma per dimension relative to the data's state std, so units do not decide the norm

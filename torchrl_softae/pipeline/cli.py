@@ -2,6 +2,7 @@
 
     softae explore  --env Pendulum-v1 --method softae --episodes 10 --seed 0 --run-dir runs/pend
     softae evaluate --run-dir runs/pend --task swingup
+    softae policy   --run-dir runs/pend --task swingup   (SAC on the run's model: SoftAE-MBPO)
     softae plot     --run-dir runs/pend          (a run, or a folder of runs to compare)
     softae sweep    sweeps/pendulum.yaml         (a grid of runs, many at once on Ray Tune)
     softae report   runs                         (tables and plots from a folder of runs)
@@ -77,6 +78,28 @@ def cmd_evaluate(args) -> int:
             keys = [k for k, v in r["metrics"][0].items() if isinstance(v, (int, float))]
             extra = "  " + ", ".join(f"{k}={sum(m[k] for m in r['metrics']) / len(r['metrics']):.3g}" for k in keys)
         print(f"  {name:>12}: mean return {r['mean_return']:.4g} over {len(r['returns'])} episodes{extra}")
+    return 0
+
+
+def cmd_policy(args) -> int:
+    import numpy as np
+
+    from torchrl_softae.pipeline.policy import train_policy
+
+    _threads(args.threads)
+    progress, echo = _progress_style(args)
+    res = train_policy(args.run_dir, args.task, propagation=args.propagation, updates=args.updates,
+                       episodes=args.episodes, seed=args.seed, overrides=args.overrides,
+                       checkpoint_updates=args.checkpoint_every, progress=progress,
+                       echo=echo or (lambda *_: None))
+    extra = ""
+    if res["metrics"] and res["metrics"][0]:
+        keys = [k for k, v in res["metrics"][0].items() if isinstance(v, (int, float))]
+        extra = ", " + ", ".join(f"{k}={np.mean([m[k] for m in res['metrics']]):.3g}" for k in keys)
+    start = "the run's own policy + " if res["from_run_policy"] else ""
+    print(f"{args.run_dir}: SAC policy for {args.task} ({start}{res['updates_done']} updates on the model, "
+          f"{res['transitions']} real transitions): mean real return {res['mean_return']:.4g} over "
+          f"{len(res['returns'])} episodes{extra}")
     return 0
 
 
@@ -194,6 +217,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("policy", help="train a SAC policy for a task on a run's model and data (MBPO), then evaluate it",
+                       description="SAC on imagined rollouts of the run's model, branched from its real states "
+                                   "(SoftAE-MBPO for a SoftAE run). Writes RUN/policies/TASK-PROPAGATION-sSEED/; "
+                                   "rerunning the same command resumes a killed training.")
+    p.add_argument("--run-dir", required=True)
+    p.add_argument("--task", required=True, help="a task of the run's env (see `softae envs`)")
+    p.add_argument("--propagation", default="mean", help="the model env's mode in the rollouts (default mean = MBPO; "
+                                                          "sample = MBPO-TS)")
+    p.add_argument("--updates", type=int, default=None,
+                   help="SAC updates (default policy.updates_per_step x the run's real transitions)")
+    p.add_argument("--episodes", type=int, default=5, help="real evaluation episodes (default 5)")
+    p.add_argument("--checkpoint-every", type=int, default=1000, help="SAC updates between checkpoints (default 1000)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="policy.KEY=VALUE",
+                   help="override a SAC setting, e.g. --set policy.num_cells=256 (repeatable)")
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_policy)
 
     p = sub.add_parser("plot", help="coverage heatmaps, curves and bars as PNG files")
     p.add_argument("--run-dir", required=True, help="a run dir, or a folder of runs to compare methods")

@@ -12,6 +12,7 @@ __all__ = [
     "ModelConfig",
     "TrainConfig",
     "PlannerConfig",
+    "PolicyConfig",
     "ExploreConfig",
     "ConfigError",
     "make_config",
@@ -65,6 +66,29 @@ class PlannerConfig:
 
 
 @dataclass
+class PolicyConfig:
+    """SAC on the learned model (MBPO). Table S8: networks 3 x 1024, batch 256, lr 3e-4, rollout
+    horizon 5; the rest is MBPO's (Janner et al. 2019), our choice where the paper is silent."""
+
+    num_cells: int = 1024
+    depth: int = 3
+    batch_size: int = 256
+    lr: float = 3e-4
+    gamma: float = 0.99
+    tau: float = 0.005
+    rollout_horizon: int = 5
+    rollout_batch: int = 400  # real start states per rollout round
+    updates_per_rollout: int = 20  # SAC updates between rollout rounds
+    updates_per_step: int = 20  # SAC updates per real transition (MBPO's G)
+    real_ratio: float = 0.05
+    imagined_capacity: int = 200_000
+
+    def rounds(self, updates: int) -> int:
+        """Rollout rounds that give ``updates`` SAC updates (rounded up)."""
+        return -(-updates // self.updates_per_rollout)
+
+
+@dataclass
 class ExploreConfig:
     """One exploration run (``softae explore``).
 
@@ -87,6 +111,7 @@ class ExploreConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
 
     # ------------------------------------------------------------------ (de)serialization
     def to_dict(self) -> dict:
@@ -98,7 +123,7 @@ class ExploreConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "ExploreConfig":
         d = dict(d)
-        sub = {"model": ModelConfig, "train": TrainConfig, "planner": PlannerConfig}
+        sub = {"model": ModelConfig, "train": TrainConfig, "planner": PlannerConfig, "policy": PolicyConfig}
         for k, t in sub.items():
             if k in d:
                 d[k] = t(**d[k])
@@ -129,6 +154,9 @@ class ExploreConfig:
             "train.lr": self.train.lr, "planner.horizon": self.planner.horizon,
             "planner.num_candidates": self.planner.num_candidates, "planner.top_k": self.planner.top_k,
             "planner.optim_steps": self.planner.optim_steps, "planner.num_particles": self.planner.num_particles,
+            **{f"policy.{k}": getattr(self.policy, k) for k in (
+                "num_cells", "depth", "batch_size", "lr", "gamma", "tau", "rollout_horizon", "rollout_batch",
+                "updates_per_rollout", "updates_per_step", "imagined_capacity")},
         }
         for k, v in positive.items():
             if not v > 0:
@@ -152,6 +180,13 @@ class ExploreConfig:
             raise ConfigError(f"planner.elite_fraction={self.planner.elite_fraction!r}; expected in [0, 1]")
         if self.planner.noise_beta < 0:
             raise ConfigError(f"planner.noise_beta={self.planner.noise_beta!r}; expected >= 0")
+        if not 0 <= self.policy.real_ratio <= 1:
+            raise ConfigError(f"policy.real_ratio={self.policy.real_ratio!r}; expected in [0, 1]")
+        if not 0 < self.policy.gamma <= 1 or not 0 < self.policy.tau <= 1:
+            raise ConfigError(f"policy.gamma={self.policy.gamma!r} and policy.tau={self.policy.tau!r}: expected in (0, 1]")
+        if method.trains_policy and self.task is not None and entry.tasks[self.task].instantiate is not None:
+            raise ConfigError(f"task {self.task!r} is a family of targets: a SAC policy needs one fixed task "
+                              f"(choose one of {', '.join(t for t in tasks if entry.tasks[t].instantiate is None)})")
         if not 0 <= self.train.val_fraction < 1:
             raise ConfigError(f"train.val_fraction={self.train.val_fraction!r}; expected in [0, 1)")
         return self
@@ -224,7 +259,7 @@ def apply_overrides(cfg: ExploreConfig, assignments: list[str]) -> ExploreConfig
         obj = cfg
         for p in parts[:-1]:
             if not hasattr(obj, p) or not dataclasses.is_dataclass(getattr(obj, p)):
-                raise ConfigError(f"unknown config section {p!r} in {key!r}; sections: model, train, planner")
+                raise ConfigError(f"unknown config section {p!r} in {key!r}; sections: model, train, planner, policy")
             obj = getattr(obj, p)
         leaf = parts[-1]
         if leaf not in {f.name for f in dataclasses.fields(obj)}:

@@ -27,6 +27,8 @@ from torchrl_softae.pipeline.config import ConfigError, ExploreConfig
 from torchrl_softae.pipeline.data import (ModelAccuracy, coverage, episode_seed, heldout_set, make_real_env,
                                           normalized_mse, seed_everything)
 from torchrl_softae.pipeline.evaluate import zero_shot
+from torchrl_softae.pipeline.methods import get_method
+from torchrl_softae.pipeline.policy import build_policy_learner
 from torchrl_softae.pipeline.runs import CheckpointError, RunDir
 
 __all__ = ["Explorer", "explore", "make_real_env", "coverage", "heldout_set", "normalized_mse"]
@@ -52,7 +54,15 @@ def _with_defaults(config: dict) -> dict:
 
 
 def _fixed_part(config: dict) -> dict:
-    return {k: v for k, v in _with_defaults(config).items() if k not in RESUMABLE_KEYS}
+    return {k: v for k, v in _with_defaults(config).items() if not _free_to_change(k, config)}
+
+
+def _free_to_change(key: str, config: dict) -> bool:
+    """Keys a resumed run may change: :data:`RESUMABLE_KEYS`, and the SAC settings of a method
+    that trains no policy (they cannot have changed what it collected)."""
+    if key in RESUMABLE_KEYS:
+        return True
+    return key.startswith("policy.") and not get_method(config.get("method", "softae")).trains_policy
 
 
 class Explorer:
@@ -87,7 +97,8 @@ class Explorer:
             return None
         old, new = _with_defaults(stored.get("config", {})), _flatten(self.cfg.to_dict())
         diff = [f"{k}: stored {old.get(k)!r} != requested {new.get(k)!r}"
-                for k in sorted(set(old) | set(new)) if k not in RESUMABLE_KEYS and old.get(k) != new.get(k)]
+                for k in sorted(set(old) | set(new))
+                if not _free_to_change(k, self.cfg.to_dict()) and old.get(k) != new.get(k)]
         if diff:
             raise ConfigError(
                 f"{self.run.path} holds a run with a different configuration ({'; '.join(diff)}); "
@@ -122,6 +133,10 @@ class Explorer:
             EnsembleLoss(model), lr=cfg.train.lr, batch_size=cfg.train.batch_size, epochs=cfg.train.epochs,
             max_grad_steps=cfg.train.max_grad_steps, val_fraction=cfg.train.val_fraction, progress=self.progress,
         )
+        method = get_method(cfg.method)
+        learner = (build_policy_learner(cfg.policy, model, env.action_spec, self.task, method.propagation, cfg.beta,
+                                        cfg.seed)
+                   if method.trains_policy else None)
         history: list[dict] = []
         start = 0
         if self.run.exists():
@@ -131,6 +146,8 @@ class Explorer:
             try:
                 model.load_state_dict(state["model"])
                 trainer.load_state_dict(state["trainer"])
+                if learner is not None:
+                    learner.load_state_dict(state["policy"])
             except (RuntimeError, KeyError, ValueError) as e:
                 raise CheckpointError(f"checkpoint does not fit this model ({e})") from None
             history = state["history"]
@@ -152,7 +169,7 @@ class Explorer:
 
             bar = tqdm(total=cfg.episodes, initial=start, desc=f"explore {cfg.env} [{cfg.method}]", unit="episode")
         for n in range(start, cfg.episodes):
-            row = self._episode(n, env, model, trainer, rb, accuracy, bounds)
+            row = self._episode(n, env, model, trainer, rb, accuracy, bounds, learner)
             history.append(row)
             # No RNG state: every episode reseeds from (seed, episode), so a resumed run draws the
             # same numbers as an uninterrupted one.
@@ -160,6 +177,8 @@ class Explorer:
                 "episode": n, "config": cfg.to_dict(), "model": model.state_dict(), "trainer": trainer.state_dict(),
                 "history": history, "wandb_id": wandb_id,
             }
+            if learner is not None:  # the SAC policy, its optimizer and imagined data (MBPO methods)
+                state["policy"] = learner.state_dict()
             self.run.save(state, rb)
             if self.on_episode is not None:
                 self.on_episode(row)
@@ -192,7 +211,7 @@ class Explorer:
         return torch.stack([lo - pad, hi + pad])
 
     # ------------------------------------------------------------------ one episode
-    def _episode(self, n, env, model, trainer, rb, accuracy, bounds) -> dict:
+    def _episode(self, n, env, model, trainer, rb, accuracy, bounds, learner=None) -> dict:
         cfg = self.cfg
         s = episode_seed(cfg.seed, n)
         seed_everything(s)
@@ -202,7 +221,7 @@ class Explorer:
             from tqdm.auto import tqdm
 
             step_bar = tqdm(total=cfg.episode_length, desc=f"episode {n} (plan+act)", leave=False, unit="step")
-        policy = build_exploration_policy(cfg, model, env, self.task, seed=s, progress=step_bar)
+        policy = build_exploration_policy(cfg, model, env, self.task, seed=s, progress=step_bar, learner=learner)
         if hasattr(policy, "reset"):
             policy.reset()
         env.set_seed(s)
@@ -228,6 +247,12 @@ class Explorer:
         t_train = time.perf_counter() - t1
 
         stored = rb.storage[: len(rb)]
+        policy_row = {}
+        if learner is not None:  # MBPO: the task policy keeps training on the retrained model
+            t2 = time.perf_counter()
+            info = learner.train(stored, cfg.policy.updates_per_step * cfg.episode_length, seed=s)
+            policy_row = {"policy_seconds": time.perf_counter() - t2, "policy_updates": learner.trainer.updates,
+                          **{f"sac/{k}": v for k, v in info.items()}}
         row = {
             "episode": n,
             "transitions": len(rb),
@@ -241,6 +266,7 @@ class Explorer:
             "coverage": coverage(self.entry, stored, bounds),
             "episode_env_reward": float(data["next", "reward"].sum()),
             **accuracy(model),
+            **policy_row,
         }
         if cfg.eval_every and ((n + 1) % cfg.eval_every == 0 or n + 1 == cfg.episodes):
             for name, task in self.entry.tasks.items():

@@ -18,13 +18,15 @@ class Method:
 
     Args:
         name: the ``--method`` value.
-        propagation: the model env's mode while planning (one of
+        propagation: the model env's mode while planning or imagining (one of
             :data:`torchrl_softae.envs.model_env.PROPAGATION_MODES`; a test checks it), or
-            ``None`` for methods that do not plan on the model (random actions).
+            ``None`` for methods that do not use the model to act (random actions).
         reward: what the planner maximizes while exploring: ``"uncertainty"`` (||sigma||, no
             task), ``"task"`` (the ``--task`` reward) or ``None``.
         uses_beta: plans with hallucinated control of width beta (so beta is part of its identity).
         description: one line for ``--help`` and reports.
+        trains_policy: collects with a SAC policy trained on the model for the task after every
+            episode (MBPO) instead of planning.
     """
 
     name: str
@@ -32,6 +34,7 @@ class Method:
     reward: str | None
     uses_beta: bool
     description: str
+    trains_policy: bool = False
 
     @property
     def needs_task(self) -> bool:
@@ -47,6 +50,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("mean-ae", "mean", "uncertainty", False, "iCEM on the ensemble mean, reward ||sigma|| (Mean-AE)"),
     Method("pets-ae", "sample", "uncertainty", False, "iCEM with trajectory sampling, reward ||sigma|| (PETS-AE)"),
     Method("hucrl", "optimistic", "task", True, "iCEM with hallucinated control on a task reward (H-UCRL; needs --task)"),
+    Method("mbpo", "mean", "task", False, "SAC on mean-model rollouts of the task, collects with it (MBPO; needs --task)",
+           trains_policy=True),
+    Method("mbpo-ts", "sample", "task", False,
+           "SAC on trajectory-sampled model rollouts of the task, collects with it (MBPO-TS; needs --task)",
+           trains_policy=True),
     Method("softae", "optimistic", "uncertainty", True,
            "iCEM with hallucinated control s' = mu + beta sigma eta, reward ||sigma|| (SoftAE)"),
 )}  # the order of tables and plots: the baseline first, the paper's method last
