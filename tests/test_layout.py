@@ -87,7 +87,7 @@ def test_one_method_table():
         assert m.propagation is None or m.propagation in PROPAGATION_MODES
     help_text = build_parser()._subparsers._group_actions[0].choices["explore"].format_help()
     assert all(name in help_text for name in METHODS)
-    with pytest.raises(ConfigError, match="valid methods: random, mean-ae, pets-ae, hucrl, softae"):
+    with pytest.raises(ConfigError, match="valid methods: random, mean-ae, pets-ae, hucrl, mbpo, mbpo-ts, softae"):
         make_config("Pendulum-v1", "sofae")
     assert METHODS["softae"].run_name(1, 0.5) == "softae-b0.5-s1" and METHODS["random"].run_name(1, 0.5) == "random-s1"
 

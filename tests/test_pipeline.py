@@ -109,7 +109,7 @@ def test_swingup_task_reward_matches_gymnasium():
 @pytest.mark.parametrize(
     "kwargs, overrides, match",
     [
-        (dict(env="Pendulum-v1", method="ucb"), [], "valid methods: random, mean-ae, pets-ae, hucrl, softae"),
+        (dict(env="Pendulum-v1", method="ucb"), [], "valid methods: random, mean-ae, pets-ae, hucrl, mbpo, mbpo-ts, softae"),
         (dict(env="Acrobot-v7", method="softae"), [], "valid envs: .*Pendulum-v1"),
         (dict(env="Pendulum-v1", method="hucrl"), [], "pass --task, one of spin, swingup"),
         (dict(env="Pendulum-v1", method="softae", task="fly"), [], "valid tasks: spin, swingup"),

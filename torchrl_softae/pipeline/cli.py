@@ -220,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("policy", help="train a SAC policy for a task on a run's model and data (MBPO), then evaluate it",
                        description="SAC on imagined rollouts of the run's model, branched from its real states "
-                                   "(SoftAE-MBPO for a SoftAE run). Writes RUN/policies/TASK-PROPAGATION-sSEED/; "
+                                   "(SoftAE-MBPO for a SoftAE run). Writes RUN/policies/TASK-PROPAGATION-sSEED-epEPISODES/; "
                                    "rerunning the same command resumes a killed training.")
     p.add_argument("--run-dir", required=True)
     p.add_argument("--task", required=True, help="a task of the run's env (see `softae envs`)")

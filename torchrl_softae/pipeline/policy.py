@@ -3,7 +3,7 @@ while they explore, and ``softae policy`` for any finished run (SoftAE-MBPO and 
 
 Layout of ``softae policy``'s output, inside the run dir::
 
-    policies/TASK-PROPAGATION-sSEED/
+    policies/TASK-PROPAGATION-sSEED-epEPISODES/   (the model after that many exploration episodes)
         config.json       task, propagation, seed, updates, the policy config (checked on resume)
         checkpoint.pt     SAC networks, target networks, alpha, optimizer, imagined buffer, rounds
         eval.json         real-env returns of the trained policy over seeded episodes
@@ -103,8 +103,9 @@ def stored_transitions(run: RunDir, state: dict) -> TensorDictBase:
     return rb.storage[: len(rb)]
 
 
-def policy_dir_name(task: str, propagation: str, seed: int) -> str:
-    return f"{task}-{propagation}-s{seed}"
+def policy_dir_name(task: str, propagation: str, seed: int, episodes_explored: int) -> str:
+    """A policy belongs to one model: the run's after ``episodes_explored`` episodes."""
+    return f"{task}-{propagation}-s{seed}-ep{episodes_explored}"
 
 
 def evaluate_policy(env_id: str, task: Task, learner: PolicyLearner, episodes: int, seed: int) -> dict:
@@ -174,7 +175,7 @@ def train_policy(
     start_updates = learner.trainer.updates
     if updates is None:
         updates = 0 if own else cfg.policy.updates_per_step * len(real)
-    out = run.path / "policies" / policy_dir_name(task, propagation, seed)
+    out = run.path / "policies" / policy_dir_name(task, propagation, seed, state["episode"] + 1)
     out.mkdir(parents=True, exist_ok=True)
     setup = {"task": task, "propagation": propagation, "seed": seed, "updates": updates, "from_run_policy": own,
              "policy": vars(cfg.policy), "episodes_explored": state["episode"] + 1, "transitions": len(real)}
