@@ -40,7 +40,7 @@ PAPER = "paper (Fig. S2): SoftAE-MBPO matches MBPO/MBPO-TS on (i), clearly beats
 
 
 def run_one(env: str, method: str, seed: int, budgets: list[int], eval_episodes: int, root: Path,
-            overrides: list[str]) -> None:
+            overrides: list[str], tag: str = "") -> None:
     from torchrl_softae.pipeline.arguments import PRESETS
     from torchrl_softae.pipeline.config import make_config
     from torchrl_softae.pipeline.explore import explore
@@ -50,12 +50,12 @@ def run_one(env: str, method: str, seed: int, budgets: list[int], eval_episodes:
     task_i, task_ii, preset = SETUPS[env]
     m = get_method(method)
     for budget in budgets:
-        out = RESULTS / env / f"{method}-s{seed}-ep{budget}.json"
+        out = RESULTS / (env + tag) / f"{method}-s{seed}-ep{budget}.json"
         if out.exists():
             continue
         cfg = make_config(env, method, [*PRESETS[preset], *overrides], episodes=budget, seed=seed, wandb="disabled",
                           task=task_i if m.needs_task else None)
-        run_dir = root / env / f"{method}-s{seed}"
+        run_dir = root / (env + tag) / f"{method}-s{seed}"
         t0 = time.time()
         history = explore(cfg, run_dir, progress=False, echo=None)
         t_explore = time.time() - t0
@@ -75,11 +75,11 @@ def run_one(env: str, method: str, seed: int, budgets: list[int], eval_episodes:
                   "history": [{k: v for k, v in row.items() if isinstance(v, (int, float))} for row in history]}
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(result, indent=1, default=float))
-        print(f"{env}/{out.name}: " + ", ".join(f"{t} {v['mean_return']:.1f}" for t, v in tasks.items()), flush=True)
+        print(f"{env + tag}/{out.name}: " + ", ".join(f"{t} {v['mean_return']:.1f}" for t, v in tasks.items()), flush=True)
 
 
-def _rows(env: str) -> list[dict]:
-    return [json.loads(p.read_text()) for p in sorted((RESULTS / env).glob("*.json"))]
+def _rows(env: str, tag: str = "") -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted((RESULTS / (env + tag)).glob("*.json"))]
 
 
 def _fmt(values, fmt="{:.1f}") -> str:
@@ -87,24 +87,26 @@ def _fmt(values, fmt="{:.1f}") -> str:
     return (fmt.format(v.mean()) + (" +- " + fmt.format(v.std()) if len(v) > 1 else "")) if len(v) else "-"
 
 
-def table(env: str) -> str:
-    rows = _rows(env)
+def table(env: str, tag: str = "") -> str:
+    rows = _rows(env, tag)
     if not rows:
-        return f"{env}: no finished result yet"
+        return f"{env + tag}: no finished result yet"
     task_i, task_ii, _ = SETUPS[env]
     order = [m for m in LABELS if any(r["method"] == m for r in rows)]
     lines = []
     for budget in sorted({r["episodes"] for r in rows}):
         group = [r for r in rows if r["episodes"] == budget]
-        lines += [f"\n{env}, {budget} episodes = {group[0]['transitions']} real transitions per run, "
+        lines += [f"\n{env + tag}, {budget} episodes = {group[0]['transitions']} real transitions per run, "
                   f"{group[0]['policy_updates_per_task']} SAC updates per task; real return, mean +- std over seeds\n",
-                  f"| method | seeds | (i) {task_i} | (ii) {task_ii} | held-out nMSE | wall-clock per run [min] |",
+                  f"| method | seeds | (i) {task_i} | (ii) {task_ii} | held-out nMSE | compute per run [min] |",
                   "|---|---|---|---|---|---|"]
         for m in order:
             rs = [r for r in group if r["method"] == m]
             if not rs:
                 continue
-            wall = [(r["explore_seconds_this_call"] + sum(t["seconds_this_call"] for t in r["tasks"].values())) / 60
+            # exploration of all episodes (collect + model + MBPO's own policy) + this budget's task policies
+            wall = [(sum(h.get("collect_seconds", 0) + h.get("train_seconds", 0) + h.get("policy_seconds", 0)
+                         for h in r["history"]) + sum(t["seconds_this_call"] for t in r["tasks"].values())) / 60
                     for r in rs]
             lines.append(f"| {LABELS[m]} | {len(rs)} | {_fmt([r['tasks'][task_i]['mean_return'] for r in rs])} | "
                          f"{_fmt([r['tasks'][task_ii]['mean_return'] for r in rs])} | "
@@ -113,13 +115,13 @@ def table(env: str) -> str:
     return "\n".join(lines)
 
 
-def plot(env: str) -> Path | None:
+def plot(env: str, tag: str = "") -> Path | None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = _rows(env)
+    rows = _rows(env, tag)
     if not rows:
         return None
     task_i, task_ii, _ = SETUPS[env]
@@ -140,7 +142,7 @@ def plot(env: str) -> Path | None:
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.tight_layout()
-    path = RESULTS / env / "return_vs_transitions.png"
+    path = RESULTS / (env + tag) / "return_vs_transitions.png"
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -155,19 +157,22 @@ def main():
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--root", default=str(Path(__file__).parent / "results" / "runs" / "mbpo"))
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--tag", default="", help="a variant's suffix for the results folder (e.g. +symlog with "
+                                             "--set model.symlog=true)")
     p.add_argument("--table", action="store_true", help="print the table of finished results and exit")
     p.add_argument("--plot", action="store_true", help="draw return vs real transitions and exit")
     args = p.parse_args()
     if args.table or args.plot:
-        print(table(args.env))
+        print(table(args.env, args.tag))
         if args.plot:
-            print(plot(args.env))
+            print(plot(args.env, args.tag))
         return
     torch.set_num_threads(args.threads)
     for item in args.runs:
         method, seed = item.split(":")
-        run_one(args.env, method, int(seed), args.budgets, args.eval_episodes, Path(args.root), args.overrides)
-    print(table(args.env))
+        run_one(args.env, method, int(seed), args.budgets, args.eval_episodes, Path(args.root), args.overrides,
+                args.tag)
+    print(table(args.env, args.tag))
 
 
 if __name__ == "__main__":
