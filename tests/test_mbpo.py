@@ -199,3 +199,20 @@ def test_bad_policy_input_is_one_line(tmp_path, capsys):
     _one_error_line(capsys, "policy.KEY=VALUE")
     with pytest.raises(ConfigError, match="family of targets"):
         make_config("SoftArm-v1", "mbpo", task="reach-any")
+
+
+def test_a_killed_mbpo_run_resumes_to_the_policy_of_an_uninterrupted_one(tmp_path):
+    from torchrl_softae.pipeline.explore import FAULT_ENV
+
+    argv = ["explore", *TINY, "--method", "mbpo", "--task", "swingup", "--episodes", "2", "--threads", "1"]
+    assert main([*argv, "--run-dir", str(tmp_path / "whole")]) == 0
+    killed = subprocess.run([sys.executable, "-m", "torchrl_softae.pipeline.cli", *argv, "--run-dir",
+                             str(tmp_path / "killed")], env={**os.environ, FAULT_ENV: "1"}, capture_output=True, text=True)
+    assert killed.returncode == 17, killed.stderr[-2000:]
+    assert main([*argv, "--run-dir", str(tmp_path / "killed")]) == 0
+    a, b = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("whole", "killed"))
+    assert a["policy"]["updates"] == b["policy"]["updates"] == 40
+    for k, v in a["policy"]["loss"].items():
+        torch.testing.assert_close(b["policy"]["loss"][k], v, rtol=0, atol=0)
+    for k, v in a["model"].items():
+        torch.testing.assert_close(b["model"][k], v, rtol=0, atol=0)
