@@ -216,3 +216,12 @@ def test_a_killed_mbpo_run_resumes_to_the_policy_of_an_uninterrupted_one(tmp_pat
         torch.testing.assert_close(b["policy"]["loss"][k], v, rtol=0, atol=0)
     for k, v in a["model"].items():
         torch.testing.assert_close(b["model"][k], v, rtol=0, atol=0)
+
+
+def test_mbpo_presets_are_the_paper_and_quick_ones_with_a_symlog_model():
+    from torchrl_softae.pipeline.arguments import PRESETS
+
+    for mbpo, base in (("mbpo", "paper"), ("mbpo-quick", "quick")):
+        a = make_config("Pendulum-hanging", "mbpo", PRESETS[mbpo], task="swingup").to_dict()
+        b = make_config("Pendulum-hanging", "mbpo", PRESETS[base], task="swingup").to_dict()
+        assert a["model"].pop("symlog") and not b["model"].pop("symlog") and a == b

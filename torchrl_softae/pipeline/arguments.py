@@ -9,6 +9,8 @@ from torchrl_softae.pipeline.methods import METHOD_NAMES, get_method
 
 __all__ = ["PRESETS", "available_cores", "add_explore_args", "config_from_args", "explore_parser", "run_dir_for"]
 
+_SYMLOG = ["model.symlog=true"]  # the paper's MBPO experiments train the model on symlog observations
+
 PRESETS = {
     "paper": [],
     # Small enough for a laptop-minute demo; the method is unchanged, only sizes/steps shrink.
@@ -21,6 +23,8 @@ PRESETS = {
         "policy.updates_per_step=5", "policy.imagined_capacity=50000", "policy.lr=1e-3",
     ],
 }
+PRESETS["mbpo"] = PRESETS["paper"] + _SYMLOG  # supplement, "Model-Based Policy Optimization"
+PRESETS["mbpo-quick"] = PRESETS["quick"] + _SYMLOG
 
 
 def available_cores() -> int:
@@ -44,7 +48,8 @@ def add_explore_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", default=None, help="the task of the methods that optimize one (hucrl, mbpo, mbpo-ts)")
     p.add_argument("--eval-every", type=int, default=None, help="zero-shot evaluate all tasks every K episodes (0 = never)")
     p.add_argument("--preset", choices=sorted(PRESETS), default="paper",
-                   help="paper: Table S6/S7 sizes; quick: small model/planner for demos and tests")
+                   help="paper: Table S6/S7 sizes; quick: small model/planner/SAC for demos and tests; mbpo, "
+                        "mbpo-quick: the same with a symlog-observation model (the paper's MBPO experiments)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override any config field, e.g. --set planner.horizon=5 --set train.lr=1e-4 (repeatable)")
     p.add_argument("--wandb", choices=["offline", "online", "disabled"], default="offline",
