@@ -2,6 +2,7 @@
 
     python benchmarks/replication_arm.py --runs softae:0 random:0 random:1 --threads 1
     python benchmarks/replication_arm.py --table          # the table from every finished result
+    python benchmarks/replication_arm.py --plot           # nMSE vs episode, returns vs budget
 
 Each ``METHOD:SEED`` explores ``SoftArm-v1`` at the paper's model, training and iCEM settings
 (Tables S6, S7; the ``paper`` preset), ``planner.precision=auto`` (bf16 where the CPU has native
@@ -100,6 +101,65 @@ def table() -> str:
     return "\n".join(lines)
 
 
+def plot() -> Path | None:
+    """Held-out nMSE vs exploration episode (every seed, and the mean where 2+ seeds have the
+    episode) and zero-shot returns vs budget (mean +- std over seeds), per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torchrl_softae.pipeline.methods import METHOD_NAMES
+
+    rows = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("*.json"))]
+    if not rows:
+        return None
+    methods = [m for m in METHOD_NAMES if any(r["method"] == m for r in rows)]
+    fig, axes = plt.subplots(1, 1 + len(TASKS), figsize=(4.2 * (1 + len(TASKS)), 3.8))
+    for c, m in enumerate(methods):
+        rs = [r for r in rows if r["method"] == m]
+        longest = {}  # the longest history of each seed
+        for r in rs:
+            if r["episodes"] > longest.get(r["seed"], {"episodes": 0})["episodes"]:
+                longest[r["seed"]] = r
+        curves = [[h["heldout_nmse"] for h in r["history"]] for r in longest.values()]
+        for y in curves:
+            axes[0].plot(range(1, len(y) + 1), y, color=f"C{c}", alpha=0.3, lw=1)
+        n = max(len(y) for y in curves)
+        mean = [np.mean([y[k] for y in curves if len(y) > k]) for k in range(n)]
+        seeds = [sum(len(y) > k for y in curves) for k in range(n)]
+        shown = [k for k in range(n) if seeds[k] >= 2]
+        axes[0].plot([k + 1 for k in shown], [mean[k] for k in shown], color=f"C{c}", lw=2.5,
+                     label=f"{m} ({len(curves)} seeds; thick: mean of 2+)")
+        budgets = sorted({r["episodes"] for r in rs})
+        for j, t in enumerate(TASKS):
+            vals = [[r["tasks"][t]["mean_return"] for r in rs if r["episodes"] == b] for b in budgets]
+            axes[j + 1].errorbar(budgets, [np.mean(v) for v in vals], yerr=[np.std(v) for v in vals], marker="o",
+                                 capsize=3, color=f"C{c}", label=f"{m} ({'/'.join(str(len(v)) for v in vals)} seeds)")
+    identity = rows[0]["accuracy"]["heldout_nmse_identity"]
+    axes[0].axhline(identity, color="k", ls="--", lw=1, label=f"s' = s ({identity:.3f})")
+    axes[0].set_yscale("log")
+    axes[0].set_title(f"{ENV}: held-out normalized MSE")
+    axes[0].set_xlabel("exploration episode (200 transitions each)")
+    axes[0].set_ylabel("normalized MSE (reference-set std)")
+    axes[0].legend(fontsize=7)
+    for j, t in enumerate(TASKS):
+        ax = axes[j + 1]
+        ax.set_title(f"{ENV}: zero-shot {t}")
+        ax.set_xlabel("exploration episodes")
+        ax.set_ylabel("return (sum of g(d), max 200)")
+        ax.set_ylim(bottom=0)
+        ax.legend(fontsize=7)
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = RESULTS.parent / "plots" / f"{ENV}_replication_curves.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--runs", nargs="*", default=[], metavar="METHOD:SEED", help="run these, one after another")
@@ -109,9 +169,12 @@ def main():
     p.add_argument("--root", default=str(Path(__file__).parent / "results" / "runs" / "arm_v1"))
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--table", action="store_true", help="print the table of finished results and exit")
+    p.add_argument("--plot", action="store_true", help="draw nMSE vs episode and returns vs budget, and exit")
     args = p.parse_args()
-    if args.table:
+    if args.table or args.plot:
         print(table())
+        if args.plot:
+            print(plot())
         return
     torch.set_num_threads(args.threads)
     for item in args.runs:
