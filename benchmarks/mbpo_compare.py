@@ -145,6 +145,9 @@ def plot(env: str, tag: str = "") -> Path | None:
         ax.set_ylabel("real return (mean +- std over seeds)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
+    per = rows[0]["policy_updates_per_task"] // rows[0]["transitions"]
+    fig.suptitle(f"SAC on the learned model, {per} updates per real transition per task policy; real-env returns",
+                 fontsize=10)
     fig.tight_layout()
     path = RESULTS / (env + tag) / "return_vs_transitions.png"
     fig.savefig(path, dpi=110)
