@@ -193,7 +193,8 @@ class Explorer:
             elif self.echo is not None:
                 self.echo(f"episode {n + 1}/{cfg.episodes}: {row['transitions']} transitions, held-out normalized MSE "
                           f"{row['heldout_nmse']:.4g}, coverage {row['coverage']:.3f}, collect {row['collect_seconds']:.0f} s, "
-                          f"train {row['train_seconds']:.0f} s")
+                          f"train {row['train_seconds']:.0f} s"
+                          + (f", SAC {row['policy_seconds']:.0f} s" if "policy_seconds" in row else ""))
         if bar is not None:
             bar.close()
         if logger is not None:
