@@ -225,3 +225,18 @@ def test_mbpo_presets_are_the_paper_and_quick_ones_with_a_symlog_model():
         a = make_config("Pendulum-hanging", "mbpo", PRESETS[mbpo], task="swingup").to_dict()
         b = make_config("Pendulum-hanging", "mbpo", PRESETS[base], task="swingup").to_dict()
         assert a["model"].pop("symlog") and not b["model"].pop("symlog") and a == b
+
+
+def test_reports_and_plots_do_not_take_a_runs_task_policies_for_runs(tmp_path, capsys):
+    run = tmp_path / "runs" / "random-s0"
+    assert main(["explore", *TINY, "--method", "random", "--episodes", "1", "--run-dir", str(run)]) == 0
+    assert main(["policy", "--run-dir", str(run), "--task", "swingup", "--updates", "10", "--episodes", "1",
+                 "--set", "policy.updates_per_rollout=10", "--quiet"]) == 0
+    assert (run / "policies/swingup-mean-s0-ep1/checkpoint.pt").exists()
+    capsys.readouterr()
+    assert main(["report", str(tmp_path / "runs"), "--no-plots"]) == 0
+    assert main(["plot", "--run-dir", str(tmp_path / "runs")]) == 0
+    out = capsys.readouterr()
+    assert "skipping" not in out.err and "policies" not in out.out, out
+    report = json.loads((tmp_path / "runs" / "report.json").read_text())
+    assert [r["seeds"] for t in report["tables"] for r in t["rows"]] == [[0]] and not report["unfinished"]

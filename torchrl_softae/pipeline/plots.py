@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from torchrl_softae.pipeline.methods import METHOD_NAMES
-from torchrl_softae.pipeline.runs import CheckpointError, RunDir
+from torchrl_softae.pipeline.runs import CheckpointError, RunDir, run_dirs_below
 
 __all__ = ["plot_run", "plot_comparison", "plot_path"]
 
@@ -144,7 +144,7 @@ def plot_run(run_dir: str | Path) -> list[Path]:
 
 
 def _runs_below(folder: Path) -> list[RunDir]:
-    return sorted((RunDir(p.parent) for p in folder.rglob("checkpoint.pt")), key=lambda r: str(r.path))
+    return [RunDir(p) for p in run_dirs_below(folder, "checkpoint.pt")]
 
 
 def _method_order(methods) -> list[str]:

@@ -27,7 +27,7 @@ from torchrl_softae.modules import EnsembleWorldModel
 from torchrl_softae.objectives.mbpo import MBPOTrainer, make_sac_actor_critic
 from torchrl_softae.pipeline.config import ConfigError, PolicyConfig, apply_overrides
 from torchrl_softae.pipeline.methods import get_method
-from torchrl_softae.pipeline.runs import CheckpointError, RunDir, atomic_torch_save
+from torchrl_softae.pipeline.runs import POLICIES_DIR, CheckpointError, RunDir, atomic_torch_save
 from torchrl_softae.tasks.base import Task, TaskReward
 
 __all__ = ["PolicyLearner", "build_policy_learner", "train_policy", "evaluate_policy", "policy_dir_name",
@@ -175,7 +175,7 @@ def train_policy(
     start_updates = learner.trainer.updates
     if updates is None:
         updates = 0 if own else cfg.policy.updates_per_step * len(real)
-    out = run.path / "policies" / policy_dir_name(task, propagation, seed, state["episode"] + 1)
+    out = run.path / POLICIES_DIR / policy_dir_name(task, propagation, seed, state["episode"] + 1)
     out.mkdir(parents=True, exist_ok=True)
     setup = {"task": task, "propagation": propagation, "seed": seed, "updates": updates, "from_run_policy": own,
              "policy": vars(cfg.policy), "episodes_explored": state["episode"] + 1, "transitions": len(real)}

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from torchrl_softae.pipeline.methods import METHOD_NAMES
-from torchrl_softae.pipeline.runs import CheckpointError, RunDir
+from torchrl_softae.pipeline.runs import CheckpointError, RunDir, run_dirs_below
 
 __all__ = ["collect", "report"]
 
@@ -38,8 +38,8 @@ def collect(root: str | Path, warn=None) -> list[dict]:
     if not root.exists():
         raise FileNotFoundError(f"{root} does not exist")
     out = []
-    for cfg_path in sorted(root.rglob("config.json")):
-        run = RunDir(cfg_path.parent)
+    for run_path in run_dirs_below(root):
+        run = RunDir(run_path)
         try:
             stored = run.read_config()
         except CheckpointError as e:

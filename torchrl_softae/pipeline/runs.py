@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 from torchrl.data import LazyMemmapStorage, ReplayBuffer
 
-__all__ = ["CheckpointError", "RunDir", "atomic_write_text", "atomic_torch_save"]
+__all__ = ["CheckpointError", "RunDir", "atomic_write_text", "atomic_torch_save", "run_dirs_below", "POLICIES_DIR"]
 
 CHECKPOINT_FORMAT = 1
 
@@ -52,6 +52,18 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 def atomic_torch_save(obj, path: Path) -> None:
     _atomic_write(path, lambda f: torch.save(obj, f))
+
+
+#: inside a run dir: the task policies trained on its model (``softae policy``), not runs themselves
+POLICIES_DIR = "policies"
+
+
+def run_dirs_below(folder: str | os.PathLike, marker: str = "config.json") -> list[Path]:
+    """The run dirs below ``folder`` (folders holding ``marker``), without the task-policy dirs
+    that ``softae policy`` writes inside runs (``RUN/policies/...``)."""
+    folder = Path(folder)
+    return sorted(p.parent for p in folder.rglob(marker)
+                  if POLICIES_DIR not in p.relative_to(folder).parts[:-1])
 
 
 class CheckpointError(RuntimeError):
