@@ -149,3 +149,32 @@ def test_random_search_with_run_cap(tmp_path, capsys):
     assert main(["sweep", str(f), "--root", str(tmp_path / "runs"), "--dry-run"]) == 0
     lines = [x for x in capsys.readouterr().out.splitlines() if x.startswith("softae explore")]
     assert 1 <= len(lines) <= 3
+
+
+def test_a_sweep_policy_block_trains_task_policies_and_the_report_shows_them(tmp_path, capsys):
+    """The MBPO comparison as a sweep: a ``policy`` block runs ``softae policy`` per task on every
+    finished run (the method's own propagation for mbpo-ts), and ``softae report`` has a column per task."""
+    text = TINY.replace("method: {values: [random, softae]}", "method: {values: [random, mbpo-ts]}").replace(
+        "seed: {values: [0, 1]}", "seed: {values: [3]}\n  task: {value: swingup}").replace(
+        '"3"\n', '"1"\n').replace(
+        "evaluate: {tasks: [swingup], episodes: 1, planner: {horizon: 2}}",
+        "policy: {tasks: [swingup, spin], episodes: 1, updates: 10}")
+    text = text.replace('  - "--quiet"', '  - "--set"\n  - "policy.num_cells=16"\n  - "--set"\n  - "policy.rollout_batch=8"\n'
+                        '  - "--set"\n  - "policy.updates_per_rollout=10"\n  - "--set"\n  - "policy.updates_per_step=1"\n'
+                        '  - "--quiet"')
+    f, root = _write(tmp_path, text), tmp_path / "runs"
+    assert main(["sweep", str(f), "--root", str(root), "--jobs", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "sweep done: 2 of 2 trials finished" in out, out
+    for name, prop in (("random-s3", "mean"), ("mbpo-ts-s3", "sample")):
+        for task in ("swingup", "spin"):
+            res = json.loads((root / "Pendulum-v1" / name / "policies" / f"{task}-{prop}-s3-ep1" / "eval.json").read_text())
+            assert len(res["returns"]) == 1 and res["seed"] == 3
+    assert main(["sweep", str(f), "--root", str(root), "--jobs", "1"]) == 0  # nothing left to do
+    assert "0 to run" in capsys.readouterr().out
+    assert main(["report", str(root), "--no-plots"]) == 0
+    md = capsys.readouterr().out
+    assert "spin SAC policy return" in md and "swingup SAC policy return" in md
+    rows = json.loads((root / "report.json").read_text())["tables"][0]["rows"]
+    assert [r["method"] for r in rows] == ["random", "mbpo-ts"]
+    assert all(len(r["policy/spin/return"]) == 1 and r["policy/spin/return"][0] is not None for r in rows)

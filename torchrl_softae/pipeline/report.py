@@ -3,7 +3,9 @@
 Per env and budget (episodes x transitions; runs of different budgets are never averaged
 together): one row per method with mean +- std over seeds of the held-out normalized MSE, the
 coverage and each evaluated task's zero-shot return (and its success measure where the task has
-one), plus the model-free reference rows where a run dir holds ``eval/references.json``. Runs that
+one), the real returns of the SAC task policies trained on the run's final model (``softae
+policy``, ``RUN/policies/``), plus the model-free reference rows where a run dir holds
+``eval/references.json``. Runs that
 have not reached their configured number of episodes are listed as unfinished, never averaged.
 Markdown and JSON go to ``ROOT/report.md`` and ``ROOT/report.json``; comparison plots to
 ``ROOT/plots/``.
@@ -18,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from torchrl_softae.pipeline.methods import METHOD_NAMES
-from torchrl_softae.pipeline.runs import CheckpointError, RunDir, run_dirs_below
+from torchrl_softae.pipeline.runs import POLICIES_DIR, CheckpointError, RunDir, run_dirs_below
 
 __all__ = ["collect", "report"]
 
@@ -52,10 +54,15 @@ def collect(root: str | Path, warn=None) -> list[dict]:
             for p in sorted((run.path / "eval").glob("*.json")):
                 if p.stem not in ("model_accuracy",):
                     evals[p.stem] = json.loads(p.read_text())
+        # task policies trained on the run's final model (``softae policy``): one per task
+        policies = {}
+        for p in sorted((run.path / POLICIES_DIR).glob(f"*-ep{len(history)}/eval.json")):
+            res = json.loads(p.read_text())
+            policies.setdefault(res["task"], res)
         out.append({"run_dir": str(run.path), "env": cfg.get("env"), "method": cfg.get("method"),
                     "seed": cfg.get("seed"), "episodes_target": cfg.get("episodes"), "episodes_done": len(history),
                     "transitions": history[-1]["transitions"] if history else 0,
-                    "last": history[-1] if history else {}, "evals": evals})
+                    "last": history[-1] if history else {}, "evals": evals, "policies": policies})
     return out
 
 
@@ -84,6 +91,8 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
             head.append(f"{t} return")
             if metric_of[t]:
                 head.append(f"{t} {metric_of[t].replace('_', ' ')}")
+        policy_tasks = sorted({t for rs in by_method.values() for r in rs for t in r["policies"]})
+        head += [f"{t} SAC policy return" for t in policy_tasks]
         rows = []
         order = [m for m in METHOD_NAMES if m in by_method] + sorted(set(by_method) - set(METHOD_NAMES))
         for m in order:
@@ -101,6 +110,10 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
                           for r in rs]
                     row[f"{t}/{metric_of[t]}"] = mv
                     cells.append(_fmt(mv, 3))
+            for t in policy_tasks:
+                ret = [r["policies"][t]["mean_return"] if t in r["policies"] else None for r in rs]
+                row[f"policy/{t}/return"] = ret
+                cells.append(_fmt(ret, 3))
             rows.append(row)
             md_row = "| " + " | ".join(cells) + " |"
             row["markdown"] = md_row
@@ -118,6 +131,7 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
                 cells.append(_fmt([v.get(t) for v in vals], 3))
                 if metric_of[t]:
                     cells.append("-")
+            cells += ["-"] * len(policy_tasks)
             md.append("| " + " | ".join(cells) + " |")
         md.append("")
         tables.append({"env": env, "episodes": episodes, "transitions": transitions, "columns": head,

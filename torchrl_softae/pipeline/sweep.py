@@ -19,6 +19,10 @@ Sweep file (W&B's format, so ``wandb sweep FILE`` works where a W&B server exist
       episodes: 3
       propagation: mean
       planner: {horizon: 30}
+    policy:                        # optional, ours: `softae policy` (SAC on the model) per task
+      tasks: [swingup, spin]
+      episodes: 5                  # real evaluation episodes
+      propagation: mean            # default: mean, or the method's own for mbpo / mbpo-ts
 """
 from __future__ import annotations
 
@@ -49,6 +53,25 @@ class Trial:
     episodes: int
     evaluate: dict | None = None
     params: dict = field(default_factory=dict)
+    policy: dict | None = None  # the sweep file's ``policy`` block
+    seed: int = 0
+    method: str = "softae"
+
+    def to_json(self) -> dict:
+        """What a trial process (local or Ray) needs to run it."""
+        return {"name": self.name, "argv": self.argv, "run_dir": str(self.run_dir), "episodes": self.episodes,
+                "evaluate": self.evaluate, "policy": self.policy, "seed": self.seed, "method": self.method}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Trial":
+        return cls(d["name"], d["argv"], Path(d["run_dir"]), d["episodes"], d["evaluate"], policy=d.get("policy"),
+                   seed=d.get("seed", 0), method=d.get("method", "softae"))
+
+    def policy_propagation(self) -> str:
+        """The propagation of its task policies: the block's, else the method's own for methods that
+        train a policy (MBPO-TS samples), else mean."""
+        method = get_method(self.method)
+        return (self.policy or {}).get("propagation") or (method.propagation if method.trains_policy else "mean")
 
 
 def load_sweep(path: str | Path) -> dict:
@@ -127,8 +150,37 @@ def expand(spec: dict, root: str | Path) -> tuple[list[Trial], int]:
         run_dir = Path(run_dir_for(cfg, str(root))).resolve()
         name = f"{cfg.env}/{run_dir.name}"
         trials.append(Trial(name, argv[1:] + [f"--run-dir={run_dir}"], run_dir, cfg.episodes,
-                            spec.get("evaluate"), dict(run)))
+                            spec.get("evaluate"), dict(run), policy=_policy_block(spec, cfg), seed=cfg.seed,
+                            method=cfg.method))
     return trials, total - len(trials)
+
+
+def _policy_block(spec: dict, cfg) -> dict | None:
+    """The sweep's ``policy`` block, checked against the run's env before anything runs."""
+    from torchrl_softae.pipeline.catalog import get_env_entry
+
+    block = spec.get("policy")
+    if block is None:
+        return None
+    if not isinstance(block, dict) or not block.get("tasks"):
+        raise ConfigError("the sweep's policy block needs 'tasks: [...]' (and optionally episodes, propagation, updates)")
+    entry = get_env_entry(cfg.env)
+    for task in block["tasks"]:
+        if task not in entry.tasks:
+            raise ConfigError(f"policy block: unknown task {task!r} for env {cfg.env!r}; valid tasks: "
+                              f"{', '.join(sorted(entry.tasks))}")
+    return dict(block)
+
+
+def _policies_trained(trial: Trial) -> bool:
+    from torchrl_softae.pipeline.policy import policy_dir_name
+    from torchrl_softae.pipeline.runs import POLICIES_DIR
+
+    if not trial.policy:
+        return True
+    return all((trial.run_dir / POLICIES_DIR / policy_dir_name(task, trial.policy_propagation(), trial.seed,
+                                                               trial.episodes) / "eval.json").exists()
+               for task in trial.policy["tasks"])
 
 
 def trial_status(trial: Trial) -> str:
@@ -137,7 +189,7 @@ def trial_status(trial: Trial) -> str:
 
     history = RunDir(trial.run_dir).history()
     done = len(history)
-    if done >= trial.episodes and _evaluated(trial):
+    if done >= trial.episodes and _evaluated(trial) and _policies_trained(trial):
         return "finished"
     return f"partial {done}/{trial.episodes}" if done else "new"
 
@@ -160,7 +212,8 @@ def _evaluated(trial: Trial) -> bool:
 
 
 def run_trial(trial: Trial, threads: int, on_episode=None) -> dict:
-    """Explore (resuming) and evaluate one trial in this process; returns its last result row."""
+    """Explore (resuming), evaluate and train its task policies (resuming) in this process; returns
+    its last result row."""
     import torch
 
     from torchrl_softae.pipeline.arguments import config_from_args, explore_parser
@@ -179,6 +232,16 @@ def run_trial(trial: Trial, threads: int, on_episode=None) -> dict:
         row.update({f"return/{k}": v["mean_return"] for k, v in res["tasks"].items()})
         if on_episode is not None:
             on_episode({**history[-1], **row, "evaluated": 1})
+    if trial.policy and not _policies_trained(trial):
+        from torchrl_softae.pipeline.policy import train_policy
+
+        for task in trial.policy["tasks"]:
+            res = train_policy(trial.run_dir, task, propagation=trial.policy_propagation(),
+                               updates=trial.policy.get("updates"), episodes=int(trial.policy.get("episodes", 5)),
+                               seed=trial.seed, progress=False, echo=None)
+            row[f"policy_return/{task}"] = res["mean_return"]
+        if on_episode is not None:
+            on_episode({**history[-1], **row, "policies_trained": 1})
     return row
 
 
@@ -197,9 +260,8 @@ def run_local(trials: list[Trial], jobs: int, threads: int, max_failures: int, e
                     return
                 trial = pending.pop(0)
             for attempt in range(max_failures + 1):
-                cmd = [sys.executable, "-m", "torchrl_softae.pipeline.sweep", "--trial", json.dumps(
-                    {"name": trial.name, "argv": trial.argv, "run_dir": str(trial.run_dir), "episodes": trial.episodes,
-                     "evaluate": trial.evaluate}), "--threads", str(threads)]
+                cmd = [sys.executable, "-m", "torchrl_softae.pipeline.sweep", "--trial", json.dumps(trial.to_json()),
+                       "--threads", str(threads)]
                 rc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True).returncode
                 if rc == 0:
                     break
@@ -223,7 +285,7 @@ def _ray_trainable(config: dict) -> None:
     from ray import tune
 
     t = config["trial"]
-    trial = Trial(t["name"], t["argv"], Path(t["run_dir"]), t["episodes"], t["evaluate"])
+    trial = Trial.from_json(t)
 
     def report(row):
         tune.report({k: v for k, v in row.items() if isinstance(v, (int, float)) and v == v})
@@ -251,9 +313,7 @@ def run_ray(trials: list[Trial], cpus_per_trial: int, max_failures: int, address
     storage_path = str(Path(storage).resolve()) if storage else str((trials[0].run_dir.parents[1] / ".tune").resolve())
     tuner = tune.Tuner(
         tune.with_resources(_ray_trainable, {"cpu": cpus_per_trial}),
-        param_space={"trial": tune.grid_search([
-            {"name": t.name, "argv": t.argv, "run_dir": str(t.run_dir), "episodes": t.episodes,
-             "evaluate": t.evaluate, "threads": cpus_per_trial} for t in trials])},
+        param_space={"trial": tune.grid_search([{**t.to_json(), "threads": cpus_per_trial} for t in trials])},
         tune_config=tune.TuneConfig(trial_name_creator=lambda tr: tr.config["trial"]["name"].replace("/", "_"),
                                     trial_dirname_creator=lambda tr: tr.config["trial"]["name"].replace("/", "_")),
         run_config=tune.RunConfig(name=f"softae-sweep-{int(time.time())}", storage_path=storage_path,
@@ -273,8 +333,7 @@ def main(argv=None) -> int:
     p.add_argument("--trial", required=True)
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args(argv)
-    d = json.loads(args.trial)
-    run_trial(Trial(d["name"], d["argv"], Path(d["run_dir"]), d["episodes"], d["evaluate"]), args.threads)
+    run_trial(Trial.from_json(json.loads(args.trial)), args.threads)
     return 0
 
 
