@@ -144,11 +144,12 @@ def plot(env: str, tag: str = "") -> Path | None:
         ax.set_xlabel("real transitions")
         ax.set_ylabel("real return (mean +- std over seeds)")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8)  # below, off the curves
     per = rows[0]["policy_updates_per_task"] // rows[0]["transitions"]
     fig.suptitle(f"SAC on the learned model, {per} updates per real transition per task policy; real-env returns",
                  fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     path = RESULTS / (env + tag) / "return_vs_transitions.png"
     fig.savefig(path, dpi=110)
     plt.close(fig)
