@@ -65,7 +65,7 @@ def run_one(env: str, method: str, seed: int, budgets: list[int], eval_episodes:
         t_explore = time.time() - t0
         tasks = {}
         for task in (task_i, task_ii):
-            propagation = m.propagation if m.trains_policy else "mean"
+            propagation = m.policy_propagation
             t0 = time.time()
             res = train_policy(run_dir, task, propagation=propagation, episodes=eval_episodes, seed=seed,
                                progress=False, echo=None)

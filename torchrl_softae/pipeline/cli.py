@@ -73,17 +73,21 @@ def cmd_evaluate(args) -> int:
                        propagation=args.propagation, progress=progress, planner_overrides=args.overrides)
     print(f"{args.run_dir}: held-out normalized MSE {res['heldout_nmse']:.4g}")
     for name, r in res["tasks"].items():
-        extra = ""
-        if r["metrics"] and r["metrics"][0]:
-            keys = [k for k, v in r["metrics"][0].items() if isinstance(v, (int, float))]
-            extra = "  " + ", ".join(f"{k}={sum(m[k] for m in r['metrics']) / len(r['metrics']):.3g}" for k in keys)
+        extra = _metrics_summary(r["metrics"])
+        extra = "  " + extra if extra else ""
         print(f"  {name:>12}: mean return {r['mean_return']:.4g} over {len(r['returns'])} episodes{extra}")
     return 0
 
 
-def cmd_policy(args) -> int:
-    import numpy as np
+def _metrics_summary(metrics: list[dict]) -> str:
+    """``name=mean`` over the episodes of each numeric success metric, or ``""``."""
+    if not metrics or not metrics[0]:
+        return ""
+    keys = [k for k, v in metrics[0].items() if isinstance(v, (int, float))]
+    return ", ".join(f"{k}={sum(m[k] for m in metrics) / len(metrics):.3g}" for k in keys)
 
+
+def cmd_policy(args) -> int:
     from torchrl_softae.pipeline.policy import train_policy
 
     _threads(args.threads)
@@ -92,10 +96,8 @@ def cmd_policy(args) -> int:
                        episodes=args.episodes, seed=args.seed, overrides=args.overrides,
                        checkpoint_updates=args.checkpoint_every, progress=progress,
                        echo=echo or (lambda *_: None))
-    extra = ""
-    if res["metrics"] and res["metrics"][0]:
-        keys = [k for k, v in res["metrics"][0].items() if isinstance(v, (int, float))]
-        extra = ", " + ", ".join(f"{k}={np.mean([m[k] for m in res['metrics']]):.3g}" for k in keys)
+    extra = _metrics_summary(res["metrics"])
+    extra = ", " + extra if extra else ""
     start = "the run's own policy + " if res["from_run_policy"] else ""
     print(f"{args.run_dir}: SAC policy for {args.task} ({start}{res['updates_done']} updates on the model, "
           f"{res['transitions']} real transitions): mean real return {res['mean_return']:.4g} over "

@@ -40,6 +40,12 @@ class Method:
     def needs_task(self) -> bool:
         return self.reward == "task"
 
+    @property
+    def policy_propagation(self) -> str:
+        """The propagation of task policies trained on its model (``softae policy``): its own where
+        it trains one (MBPO-TS samples), else the mean."""
+        return self.propagation if self.trains_policy else "mean"
+
     def run_name(self, seed: int, beta: float) -> str:
         """The run dir's name under ``ROOT/ENV/``: beta only where it changes the method."""
         return f"{self.name}-b{beta:g}-s{seed}" if self.uses_beta else f"{self.name}-s{seed}"

@@ -70,8 +70,7 @@ class Trial:
     def policy_propagation(self) -> str:
         """The propagation of its task policies: the block's, else the method's own for methods that
         train a policy (MBPO-TS samples), else mean."""
-        method = get_method(self.method)
-        return (self.policy or {}).get("propagation") or (method.propagation if method.trains_policy else "mean")
+        return (self.policy or {}).get("propagation") or get_method(self.method).policy_propagation
 
 
 def load_sweep(path: str | Path) -> dict:
