@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import Bounded, LazyTensorStorage, ReplayBuffer
+from torchrl.data import Bounded
 from torchrl.envs import Compose, TransformedEnv
 
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl
@@ -92,15 +92,8 @@ def build_policy_learner(cfg: PolicyConfig, model: EnsembleWorldModel, action_sp
 
 
 def stored_transitions(run: RunDir, state: dict) -> TensorDictBase:
-    """A run's real transitions, read from its replay dump into memory (the run's own working
-    files are not touched, so a run still exploring is safe)."""
-    rb = ReplayBuffer(storage=LazyTensorStorage(state["replay_capacity"]))
-    dump = run.replay_dump(state["episode"])
-    try:
-        rb.loads(str(dump))
-    except Exception as e:  # noqa: BLE001
-        raise CheckpointError(f"replay dump {dump} is unreadable ({type(e).__name__}: {e})") from None
-    return rb.storage[: len(rb)]
+    """A run's real transitions in memory (:meth:`RunDir.read_transitions`)."""
+    return run.read_transitions(state)
 
 
 def policy_dir_name(task: str, propagation: str, seed: int, episodes_explored: int) -> str:

@@ -125,9 +125,23 @@ class RunDir:
 
     def load_replay_buffer(self, state: dict, capacity: int | None = None) -> ReplayBuffer:
         """The replay buffer a checkpoint ``state`` names, grown to ``capacity`` if that is larger."""
-        episode, expected = state["episode"], state["num_transitions"]
-        rb = self.new_replay_buffer(state["replay_capacity"])
-        dump = self.replay_dump(episode)
+        rb = self._load_dump(self.new_replay_buffer(state["replay_capacity"]), state)
+        if capacity is not None and capacity > state["replay_capacity"]:  # the run was extended
+            data = rb.storage[: len(rb)]
+            rb = self.new_replay_buffer(capacity)
+            rb.extend(data)
+        return rb
+
+    def read_transitions(self, state: dict):
+        """The transitions of the replay dump a checkpoint ``state`` names, read into memory: the
+        run's own working files are not touched, so a run that is still exploring is safe."""
+        from torchrl.data import LazyTensorStorage
+
+        rb = self._load_dump(ReplayBuffer(storage=LazyTensorStorage(state["replay_capacity"])), state)
+        return rb.storage[: len(rb)]
+
+    def _load_dump(self, rb: ReplayBuffer, state: dict) -> ReplayBuffer:
+        dump, expected = self.replay_dump(state["episode"]), state["num_transitions"]
         if not dump.exists():
             raise CheckpointError(f"checkpoint names replay dump {dump}, which is missing: the run dir is corrupt")
         try:
@@ -136,10 +150,6 @@ class RunDir:
             raise CheckpointError(f"replay dump {dump} is unreadable ({type(e).__name__}: {e})") from None
         if len(rb) != expected:
             raise CheckpointError(f"replay dump {dump} holds {len(rb)} transitions, the checkpoint expects {expected}")
-        if capacity is not None and capacity > state["replay_capacity"]:  # the run was extended
-            data = rb.storage[: len(rb)]
-            rb = self.new_replay_buffer(capacity)
-            rb.extend(data)
         return rb
 
     # ------------------------------------------------------------------ checkpoint
