@@ -29,6 +29,9 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import MLP, NormalParamExtractor, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate
 
+from torchrl_softae.envs.transforms.hallucinated_control import RealActionPolicy
+from torchrl_softae.seeding import derive_seed
+
 __all__ = ["make_sac_actor_critic", "branched_rollouts", "MBPOTrainer", "PolicyForRealEnv", "TRANSITION_KEYS"]
 
 #: what one transition holds for SAC (real and imagined alike)
@@ -209,7 +212,7 @@ class MBPOTrainer:
             raise ValueError("MBPOTrainer.train needs at least one real transition")
         last = {}
         for _ in range(rounds):
-            round_seed = (int(seed) * 1_000_003 + self.rounds * 7919) % (2**31 - 1)
+            round_seed = derive_seed(seed, self.rounds)
             torch.manual_seed(round_seed)
             model_env.set_seed(round_seed)
             self.imagine(model_env, real)
@@ -222,9 +225,14 @@ class MBPOTrainer:
         last["imagined"] = len(self.imagined)
         return last
 
-    def policy(self, action_dim: int | None = None, deterministic: bool = True) -> "PolicyForRealEnv":
-        """The actor as a real-env policy: its mode (or a sample), cut to ``action_dim`` dims."""
-        return PolicyForRealEnv(self.actor, deterministic, action_dim)
+    def policy(self, action_dim: int | None = None, deterministic: bool = True) -> TensorDictModuleBase:
+        """The actor as a real-env policy: its mode (or a sample). ``action_dim``: the real env's
+        action size when the actor also emits hallucinated control (``[a, eta]``): only ``a``
+        reaches the env (:class:`~torchrl_softae.envs.RealActionPolicy`)."""
+        policy = PolicyForRealEnv(self.actor, deterministic)
+        if action_dim is not None and action_dim < self.action_dim:
+            policy = RealActionPolicy(policy, action_dim)
+        return policy
 
     # ------------------------------------------------------------------ checkpoint
     def state_dict(self) -> dict:
@@ -240,12 +248,12 @@ class MBPOTrainer:
 
 class PolicyForRealEnv(TensorDictModuleBase):
     """A SAC actor acting on a real env: its mode (``deterministic``) or a sample, without
-    gradients, cut to the env's action size (``action_dim``, set by the caller when the actor also
-    emits hallucinated control)."""
+    gradients, in the observation's dtype. Wrap it in
+    :class:`~torchrl_softae.envs.RealActionPolicy` when the actor also emits hallucinated control."""
 
-    def __init__(self, actor: ProbabilisticActor, deterministic: bool = True, action_dim: int | None = None):
+    def __init__(self, actor: ProbabilisticActor, deterministic: bool = True):
         super().__init__()
-        self.actor, self.deterministic, self.action_dim = actor, deterministic, action_dim
+        self.actor, self.deterministic = actor, deterministic
         self.in_keys, self.out_keys = ["observation"], ["action"]
 
     @torch.no_grad()
@@ -253,8 +261,4 @@ class PolicyForRealEnv(TensorDictModuleBase):
         kind = ExplorationType.DETERMINISTIC if self.deterministic else ExplorationType.RANDOM
         with set_exploration_type(kind):
             out = self.actor(tensordict.select("observation").float())
-        a = out["action"]
-        if self.action_dim is not None:
-            a = a[..., : self.action_dim]
-        return tensordict.set("action", a.to(tensordict.get("observation").dtype))
-
+        return tensordict.set("action", out["action"].to(tensordict.get("observation").dtype))

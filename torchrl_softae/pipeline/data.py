@@ -15,6 +15,7 @@ from torchrl_softae.envs.guard import GuardedEnv
 from torchrl_softae.modules import EnsembleWorldModel
 from torchrl_softae.pipeline.catalog import EnvEntry
 from torchrl_softae.pipeline.runs import RunDir, atomic_torch_save
+from torchrl_softae.seeding import derive_seed
 
 __all__ = ["make_real_env", "episode_seed", "seed_everything", "heldout_set", "reference_set", "reference_scale",
            "normalized_mse", "trivial_nmse", "legacy_normalized_mse", "coverage", "ModelAccuracy"]
@@ -26,7 +27,8 @@ def make_real_env(entry: EnvEntry, max_steps: int) -> EnvBase:
 
 
 def episode_seed(seed: int, episode: int) -> int:
-    return (seed * 1_000_003 + episode * 7919) % (2**31 - 1)
+    """The seed of a run's episode ``episode`` (:func:`~torchrl_softae.seeding.derive_seed`)."""
+    return derive_seed(seed, episode)
 
 
 def seed_everything(seed: int) -> None:

@@ -29,7 +29,7 @@ from torchrl_softae.pipeline.data import (ModelAccuracy, coverage, episode_seed,
 from torchrl_softae.pipeline.evaluate import zero_shot
 from torchrl_softae.pipeline.methods import get_method
 from torchrl_softae.pipeline.policy import build_policy_learner
-from torchrl_softae.pipeline.runs import CheckpointError, RunDir
+from torchrl_softae.pipeline.runs import CheckpointError, RunDir, exit_once_after
 
 __all__ = ["Explorer", "explore", "make_real_env", "coverage", "heldout_set", "normalized_mse"]
 
@@ -182,7 +182,7 @@ class Explorer:
             self.run.save(state, rb)
             if self.on_episode is not None:
                 self.on_episode(row)
-            _fault_injection(self.run, n)
+            exit_once_after(FAULT_ENV, n + 1, self.run.path, "episode")
             if logger is not None:
                 for k, v in row.items():
                     if isinstance(v, (int, float)) and k != "episode" and math.isfinite(v):
@@ -281,20 +281,7 @@ def explore(cfg: ExploreConfig, run_dir: str | Path, progress: bool = True, echo
     return Explorer(cfg, run_dir, progress=progress, echo=echo, on_episode=on_episode).run_exploration()
 
 
-#: test hook: ``SOFTAE_EXIT_AFTER_EPISODE=K`` (or ``K:NAME``, only run dirs whose name contains
-#: NAME) makes a run die (``os._exit``) right after checkpointing episode K, once per run dir (a
-#: marker file remembers it), to test that sweeps retry and resume killed runs
+#: test hook (:func:`~torchrl_softae.pipeline.runs.exit_once_after`): ``SOFTAE_EXIT_AFTER_EPISODE=K``
+#: (or ``K:NAME``) makes a run die right after checkpointing episode K, once per run dir, to test
+#: that sweeps retry and resume killed runs
 FAULT_ENV = "SOFTAE_EXIT_AFTER_EPISODE"
-
-
-def _fault_injection(run: RunDir, episode: int) -> None:
-    import os
-
-    spec = os.environ.get(FAULT_ENV)
-    if not spec:
-        return
-    k, _, name = spec.partition(":")
-    marker = run.path / ".injected_exit"
-    if episode + 1 == int(k) and name in run.path.name and not marker.exists():
-        marker.write_text(f"killed after episode {episode + 1}\n")
-        os._exit(17)

@@ -11,7 +11,6 @@ Layout of ``softae policy``'s output, inside the run dir::
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
@@ -27,14 +26,14 @@ from torchrl_softae.modules import EnsembleWorldModel
 from torchrl_softae.objectives.mbpo import MBPOTrainer, make_sac_actor_critic
 from torchrl_softae.pipeline.config import ConfigError, PolicyConfig, apply_overrides
 from torchrl_softae.pipeline.methods import get_method
-from torchrl_softae.pipeline.runs import POLICIES_DIR, CheckpointError, RunDir, atomic_torch_save
+from torchrl_softae.pipeline.runs import POLICIES_DIR, CheckpointError, RunDir, atomic_torch_save, exit_once_after
 from torchrl_softae.tasks.base import Task, TaskReward
 
 __all__ = ["PolicyLearner", "build_policy_learner", "train_policy", "evaluate_policy", "policy_dir_name",
            "stored_transitions", "POLICY_FAULT_ENV"]
 
-#: test hook, like explore's: ``SOFTAE_EXIT_AFTER_POLICY_CHUNK=K`` kills ``softae policy``
-#: (``os._exit``) right after its K-th checkpoint, once per policy dir
+#: test hook (:func:`~torchrl_softae.pipeline.runs.exit_once_after`): ``SOFTAE_EXIT_AFTER_POLICY_CHUNK=K``
+#: kills ``softae policy`` right after its K-th checkpoint, once per policy dir
 POLICY_FAULT_ENV = "SOFTAE_EXIT_AFTER_POLICY_CHUNK"
 
 
@@ -109,14 +108,6 @@ def evaluate_policy(env_id: str, task: Task, learner: PolicyLearner, episodes: i
     res = _task_rollouts(env_id, task, episodes, seed, lambda real, s, t: learner.policy(deterministic=True))
     res["mean_return"] = float(np.mean(res["returns"]))
     return res
-
-
-def _fault_injection(out: Path, checkpoints: int) -> None:
-    spec = os.environ.get(POLICY_FAULT_ENV)
-    marker = out / ".injected_exit"
-    if spec and checkpoints == int(spec) and not marker.exists():
-        marker.write_text(f"killed after checkpoint {checkpoints}\n")
-        os._exit(17)
 
 
 def train_policy(
@@ -204,7 +195,7 @@ def train_policy(
         learner.train(real, n, seed=seed, progress=bar)
         done = learner.trainer.updates - start_updates
         atomic_torch_save({"learner": learner.state_dict(), "updates_done": done}, ckpt)
-        _fault_injection(out, -(-done // chunk))
+        exit_once_after(POLICY_FAULT_ENV, -(-done // chunk), out, "checkpoint")
         if bar is None and echo is not None:
             echo(f"{out.name}: {done}/{updates} SAC updates")
     if bar is not None:

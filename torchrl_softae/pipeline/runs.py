@@ -29,7 +29,8 @@ from pathlib import Path
 import torch
 from torchrl.data import LazyMemmapStorage, ReplayBuffer
 
-__all__ = ["CheckpointError", "RunDir", "atomic_write_text", "atomic_torch_save", "run_dirs_below", "POLICIES_DIR"]
+__all__ = ["CheckpointError", "RunDir", "atomic_write_text", "atomic_torch_save", "run_dirs_below", "POLICIES_DIR",
+           "exit_once_after"]
 
 CHECKPOINT_FORMAT = 1
 
@@ -64,6 +65,20 @@ def run_dirs_below(folder: str | os.PathLike, marker: str = "config.json") -> li
     folder = Path(folder)
     return sorted(p.parent for p in folder.rglob(marker)
                   if POLICIES_DIR not in p.relative_to(folder).parts[:-1])
+
+
+def exit_once_after(env_var: str, count: int, folder: Path, what: str) -> None:
+    """Test hook for kill-and-resume tests: when ``$env_var`` is ``K`` (or ``K:NAME``, only folders
+    whose name contains NAME) and ``count == K``, die at once (``os._exit(17)``, no cleanup, like
+    a kill), once per folder (a marker file remembers it)."""
+    spec = os.environ.get(env_var)
+    if not spec:
+        return
+    k, _, name = spec.partition(":")
+    marker = folder / ".injected_exit"
+    if count == int(k) and name in folder.name and not marker.exists():
+        marker.write_text(f"killed after {what} {count}\n")
+        os._exit(17)
 
 
 class CheckpointError(RuntimeError):
