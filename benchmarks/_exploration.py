@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchrl_softae.pipeline.cli import PRESETS
+from torchrl_softae.pipeline.cli import PRESETS, plain_output
 from torchrl_softae.pipeline.config import make_config
 from torchrl_softae.pipeline.evaluate import evaluate_run, reference_returns
 from torchrl_softae.pipeline.explore import explore
@@ -43,6 +43,7 @@ def run(args, tasks: list[str], overrides: list[str], metric_keys: dict[str, str
 
     ``references``: add rows with the task returns of model-free references (random actions and
     no control) on the same evaluation episodes, to tell solving a task from not trying."""
+    plain_output()
     torch.set_num_threads(args.threads)
     root = Path(args.root or RESULTS / "runs" / f"exploration_{args.env}")
     rows: dict[str, list] = {}

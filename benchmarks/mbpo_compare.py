@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from torchrl_softae.pipeline.arguments import PRESETS
+from torchrl_softae.pipeline.cli import plain_output
 
 RESULTS = Path(__file__).parent / "results" / "mbpo"
 SETUPS = {  # env -> (task (i), task (ii), preset, overrides)
@@ -157,6 +158,7 @@ def plot(env: str, tag: str = "") -> Path | None:
 
 
 def main():
+    plain_output()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--env", default="Pendulum-hanging", choices=sorted(SETUPS))
     p.add_argument("--runs", nargs="*", default=[], metavar="METHOD:SEED", help="run these, one after another")

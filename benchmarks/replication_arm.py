@@ -161,6 +161,9 @@ def plot() -> Path | None:
 
 
 def main():
+    from torchrl_softae.pipeline.cli import plain_output
+
+    plain_output()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--runs", nargs="*", default=[], metavar="METHOD:SEED", help="run these, one after another")
     p.add_argument("--budgets", type=int, nargs="+", default=[10, 25, 50])

@@ -276,8 +276,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _plain_output() -> None:
-    """W&B without its banner, TorchRL without INFO lines (and their colour codes)."""
+def plain_output() -> None:
+    """W&B without its banner, TorchRL without INFO lines (and their colour codes): what the CLI
+    and the long benchmarks print goes to log files."""
     import logging
 
     os.environ.setdefault("WANDB_SILENT", "true")
@@ -287,7 +288,7 @@ def _plain_output() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    _plain_output()
+    plain_output()
     from torchrl_softae.envs.robots.rendering import RenderingUnavailable
     from torchrl_softae.pipeline.config import ConfigError
     from torchrl_softae.pipeline.runs import CheckpointError
