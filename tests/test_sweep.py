@@ -128,6 +128,39 @@ def test_local_processes_sweep_resumes_a_killed_trial(tmp_path, capsys, monkeypa
     assert data["unfinished"][0]["episodes_done"] == 1
 
 
+def test_row_labels_keep_apart_runs_of_a_method_that_differ_in_more_than_the_seed():
+    from torchrl_softae.pipeline.methods import label_order, row_labels
+
+    def cfg(method, seed, beta=2.0, horizon=10, episodes=5):
+        return {"method": method, "seed": seed, "beta": beta, "episodes": episodes, "wandb": "disabled",
+                "planner": {"horizon": horizon}}
+
+    configs = [cfg("softae", 0, 1.0), cfg("softae", 1, 1.0, episodes=8), cfg("softae", 0, 2.0),
+               cfg("random", 0, 1.0), cfg("random", 1, 2.0),  # beta does not change random actions
+               cfg("mean-ae", 0, horizon=5), cfg("mean-ae", 1, horizon=20)]
+    labels = row_labels(configs)
+    assert labels == ["softae beta=1", "softae beta=1", "softae beta=2", "random", "random",
+                      "mean-ae planner.horizon=5", "mean-ae planner.horizon=20"]
+    assert label_order(labels) == ["random", "mean-ae planner.horizon=20", "mean-ae planner.horizon=5",
+                                   "softae beta=1", "softae beta=2"]
+
+
+def test_report_and_plots_never_average_runs_of_different_beta(tmp_path, capsys):
+    tiny = ["--env", "Pendulum-v1", "--preset", "quick", "--episodes", "1", "--episode-length", "20",
+            "--set", "planner.horizon=2", "--set", "planner.num_candidates=8", "--set", "planner.top_k=2",
+            "--set", "train.epochs=1", "--set", "heldout_size=50", "--wandb", "disabled", "--quiet"]
+    root = tmp_path / "runs"
+    for method, beta, seed in [("softae", 1, 0), ("softae", 2, 0), ("softae", 2, 1), ("random", 2, 0)]:
+        assert main(["explore", *tiny, "--method", method, "--beta", str(beta), "--seed", str(seed),
+                     "--run-dir", str(root / f"{method}-b{beta}-s{seed}")]) == 0
+    assert main(["report", str(root)]) == 0
+    rows = json.loads((root / "report.json").read_text())["tables"][0]["rows"]
+    assert [(r["method"], r["seeds"]) for r in rows] == [("random", [0]), ("softae beta=1", [0]),
+                                                          ("softae beta=2", [0, 1])]
+    assert "| softae beta=2 | 2 |" in capsys.readouterr().out
+    assert (root / "plots" / "mse_bars.png").exists()
+
+
 @pytest.mark.parametrize("text, args, needle", [
     (TINY.replace("seed: {values", "sed: {values"), [], "unknown sweep parameter 'sed'"),
     (TINY.replace("beta: {value: 2.0}", "set: {value: planner.precision=fp8}"), [], "planner.precision='fp8'"),

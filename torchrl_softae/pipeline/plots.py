@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchrl_softae.pipeline.methods import METHOD_NAMES
+from torchrl_softae.pipeline.methods import label_order, row_labels
 from torchrl_softae.pipeline.runs import CheckpointError, RunDir, run_dirs_below
 
 __all__ = ["plot_run", "plot_comparison", "plot_path"]
@@ -147,11 +147,6 @@ def _runs_below(folder: Path) -> list[RunDir]:
     return [RunDir(p) for p in run_dirs_below(folder, "checkpoint.pt")]
 
 
-def _method_order(methods) -> list[str]:
-    known = [m for m in METHOD_NAMES if m in methods]
-    return known + sorted(set(methods) - set(known))
-
-
 def _load_ok(runs: list[RunDir], warn) -> list[tuple[RunDir, dict]]:
     """The runs that load; each broken one costs a warning line, not the whole plot."""
     ok = []
@@ -174,10 +169,14 @@ def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
     loaded = _load_ok(_runs_below(folder), warn)
     if not loaded:
         raise FileNotFoundError(f"no readable run (checkpoint.pt) below {folder}")
-    groups: dict[tuple, dict[str, list]] = defaultdict(lambda: defaultdict(list))
+    budgets: dict[tuple, list] = defaultdict(list)
     for run, state in loaded:
-        key = (state["config"]["env"], state["episode"] + 1, state["num_transitions"])
-        groups[key][state["config"]["method"]].append((run, state))
+        budgets[(state["config"]["env"], state["episode"] + 1, state["num_transitions"])].append((run, state))
+    groups: dict[tuple, dict[str, list]] = {}
+    for key, rs in budgets.items():  # runs of a method that differ in more than the seed stay apart
+        groups[key] = defaultdict(list)
+        for (run, state), label in zip(rs, row_labels([state["config"] for _, state in rs])):
+            groups[key][label].append((run, state))
     if len(groups) > 1:
         warn(f"softae plot: {folder} holds {len(groups)} (env, budget) groups; plotting each on its own, never pooled")
     out_dir = folder / "plots"
@@ -185,7 +184,7 @@ def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
     written = []
     for (env, episodes, transitions), by_method in sorted(groups.items()):
         entry = get_env_entry(env)
-        methods = _method_order(by_method)
+        methods = label_order(by_method)
         seeds = sorted({len(by_method[m]) for m in methods})
         budget = f"{episodes} episodes = {transitions} transitions per run"
         seed_text = (f"{seeds[0]} seed{'s' * (seeds[0] != 1)}" if len(seeds) == 1

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_softae.pipeline.methods import METHOD_NAMES
+from torchrl_softae.pipeline.methods import label_order, row_labels
 from torchrl_softae.pipeline.runs import POLICIES_DIR, CheckpointError, RunDir, run_dirs_below
 
 __all__ = ["collect", "report"]
@@ -59,7 +59,7 @@ def collect(root: str | Path, warn=None) -> list[dict]:
         for p in sorted((run.path / POLICIES_DIR).glob(f"*-ep{len(history)}/eval.json")):
             res = json.loads(p.read_text())
             policies.setdefault(res["task"], res)
-        out.append({"run_dir": str(run.path), "env": cfg.get("env"), "method": cfg.get("method"),
+        out.append({"run_dir": str(run.path), "config": cfg, "env": cfg.get("env"), "method": cfg.get("method"),
                     "seed": cfg.get("seed"), "episodes_target": cfg.get("episodes"), "episodes_done": len(history),
                     "transitions": history[-1]["transitions"] if history else 0,
                     "last": history[-1] if history else {}, "evals": evals, "policies": policies})
@@ -76,11 +76,15 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
         raise FileNotFoundError(f"no run (config.json) below {root}")
     finished = [r for r in runs if r["episodes_done"] >= (r["episodes_target"] or 0) and r["episodes_done"]]
     unfinished = [r for r in runs if r not in finished]
-    groups = defaultdict(lambda: defaultdict(list))
+    budgets = defaultdict(list)
     for r in finished:
-        groups[(r["env"], r["episodes_done"], r["transitions"])][r["method"]].append(r)
+        budgets[(r["env"], r["episodes_done"], r["transitions"])].append(r)
     md, tables = [f"# Report of {root}", ""], []
-    for (env, episodes, transitions), by_method in sorted(groups.items()):
+    for (env, episodes, transitions), rs_of_budget in sorted(budgets.items()):
+        # one row per method (and setting, where runs of a method differ in more than the seed)
+        by_method = defaultdict(list)
+        for r, label in zip(rs_of_budget, row_labels([r["config"] for r in rs_of_budget])):
+            by_method[label].append(r)
         entry = get_env_entry(env)
         # evaluations planned with overrides keep their own column (TASK@key=value)
         tasks = sorted({t for rs in by_method.values() for r in rs for t in r["evals"] if t != "references"})
@@ -94,8 +98,7 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
         policy_tasks = sorted({t for rs in by_method.values() for r in rs for t in r["policies"]})
         head += [f"{t} SAC policy return" for t in policy_tasks]
         rows = []
-        order = [m for m in METHOD_NAMES if m in by_method] + sorted(set(by_method) - set(METHOD_NAMES))
-        for m in order:
+        for m in label_order(by_method):
             rs = by_method[m]
             row = {"method": m, "seeds": sorted(r["seed"] for r in rs),
                    "heldout_nmse": [r["last"].get("heldout_nmse") for r in rs],
