@@ -19,6 +19,8 @@ reported as median and best, so a noisy machine cannot make one ratio out of one
   icem-fp32-dedup   our ICEMPlanner, SoftAE (optimistic, deterministic): 1 particle
   icem-bf16-dedup   same with bf16 hidden layers
   icem-deadline     SoftAE bf16 with a 50 ms wall-clock budget per action
+  ...@PATH          (--compare-paths) the four icem rows with the ensemble's inference path fixed
+                    (conv, conv-fused, bmm) instead of measured at first use
 
 Prints the CPU (vendor, AVX-512, AVX512-BF16, AMX), the GEMM peaks of every path measured in the
 same run (MKL ``a @ b`` and oneDNN 1x1 convolution, fp32 and bf16), and "% of peak" against the
@@ -43,6 +45,7 @@ from torchrl.modules import CEMPlanner
 
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
+from torchrl_softae.modules.paths import INFERENCE_PATHS
 from torchrl_softae.modules.precision import cpu_flags
 
 SHAPES = [  # (name, d_s, d_a, H)
@@ -145,6 +148,8 @@ def main():
     p.add_argument("--quick", action="store_true", help="only the arm (58, 12) and SoPrA (32, 6, H=5)")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--compare-paths", action="store_true",
+                   help="also time the icem rows with each inference path fixed (conv, conv-fused, bmm)")
     p.add_argument("--out", default=str(Path(__file__).parent / "results" / "planning_speed.json"))
     args = p.parse_args()
     repeats = max(args.repeats, 5)
@@ -182,18 +187,32 @@ def main():
             "icem-bf16-dedup": (ICEMPlanner(opt_env, precision="bf16", **icem), "bf16", None),
             "icem-deadline": (ICEMPlanner(opt_env, precision="bf16", time_budget=0.05, **icem), "bf16", None),
         })
+        path_of = {}  # contender -> the inference path it runs with ("auto": measured at first use)
+        if args.compare_paths:
+            for key in ("icem-fp32-full", "icem-bf16-full", "icem-fp32-dedup", "icem-bf16-dedup"):
+                for path in INFERENCE_PATHS:
+                    env = sample_env if "full" in key else opt_env
+                    prec = "bf16" if "bf16" in key else "fp32"
+                    planners[f"{key}@{path}"] = (ICEMPlanner(env, precision=prec, **icem), prec, None)
+                    path_of[f"{key}@{path}"] = path
         times = {k: [] for k in planners}
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            for planner, *_ in planners.values():
-                planner(obs.clone())  # warm-up (allocations, weight caches)
+            for key, (planner, *_) in planners.items():
+                model.inference_path = path_of.get(key, "auto")
+                planner(obs.clone())  # warm-up (allocations, weight caches, path measurement)
             for _ in range(repeats):  # interleaved: one action of each contender per round
                 for key, (planner, *_) in planners.items():
+                    model.inference_path = path_of.get(key, "auto")
                     if hasattr(planner, "reset"):
                         planner.reset()
                     t = time.perf_counter()
                     planner(obs.clone())
                     times[key].append(time.perf_counter() - t)
+        model.inference_path = "auto"
+        chosen = sorted({f"{'bf16' if k[0] == torch.bfloat16 else 'fp32'} rows<={k[1]}: {v}"
+                         for k, v in model._path_memo.items() if isinstance(v, str)})
+        print(f"<!-- {name}: inference paths measured at first use: {'; '.join(chosen)} -->")
         base = statistics.median(times["cem-torchrl"])
         for key, (planner, dtype, rows) in planners.items():
             med, best = statistics.median(times[key]), min(times[key])

@@ -183,21 +183,37 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
     x = torch.randn(300, 8)
     with torch.no_grad():
         first = model._inference_path(x, torch.float32, None)
-        assert first in ("conv", "bmm")
+        assert first in ("conv", "conv-fused", "bmm")
         stored = json.loads((tmp_path / "paths.json").read_text())
         assert list(stored.values()) == [first] and "rows 512" in next(iter(stored))
         monkeypatch.setattr(paths, "_MEMORY", {})  # a new process reads the disk: the same choice
         model._path_memo.clear()
         assert model._inference_path(torch.randn(400, 8), torch.float32, None) == first
-        for forced in ("conv", "bmm"):
+        for forced in ("conv", "conv-fused", "bmm"):
             monkeypatch.setenv("SOFTAE_INFERENCE_PATH", forced)
             assert model._inference_path(x, torch.float32, None) == forced
         monkeypatch.delenv("SOFTAE_INFERENCE_PATH")
-        model.inference_path = "bmm"
-        out_bmm = model.network(model.input_normalizer.normalize(x))[0]
-        model.inference_path = "conv"
-        out_conv = model.network(model.input_normalizer.normalize(x))[0]
-        torch.testing.assert_close(out_bmm, out_conv, rtol=1e-4, atol=1e-5)  # the same function either way
+        outs = {}
+        for path in ("bmm", "conv", "conv-fused"):
+            model.inference_path = path
+            outs[path] = model.network(model.input_normalizer.normalize(x))[0]
+        torch.testing.assert_close(outs["conv"], outs["bmm"], rtol=1e-4, atol=1e-5)  # the same function either way
+        torch.testing.assert_close(outs["conv-fused"], outs["bmm"], rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("activation", [torch.nn.SiLU, torch.nn.ReLU, torch.nn.Tanh, torch.nn.ELU])
+def test_fused_activation_path_computes_what_the_training_path_computes(activation):
+    """The oneDNN post-op fusion (SiLU as "swish", ...) is the same network as autograd's layers,
+    in fp32 and, up to bf16 rounding, in bf16; an activation without a post-op runs unfused."""
+    torch.manual_seed(0)
+    model = EnsembleWorldModel(6, 2, num_cells=32, depth=3, activation_class=activation).eval()
+    x = torch.randn(300, 8)
+    ref = model.network(x)[0].detach()  # grad enabled: the training path
+    model.inference_path = "conv-fused"
+    with torch.no_grad():
+        torch.testing.assert_close(model.network(x)[0], ref, rtol=1e-4, atol=1e-5)
+        model.planning_dtype = torch.bfloat16
+        assert (model.network(x)[0] - ref).abs().max() < 0.05 * ref.abs().max()
 
 
 def test_auto_precision_is_fp32_where_bf16_is_not_native(monkeypatch):

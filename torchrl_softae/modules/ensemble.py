@@ -310,8 +310,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
         else:
             lowp = self.planning_dtype or torch.float32
             cols = None if (want_logvar or not self.probabilistic) else d  # both heads in one matmul
-            if x.dim() == 2 and self._inference_path(x, lowp, cols) == "conv":
-                y = self._network_grouped_conv(x, lowp, cols)
+            path = self._inference_path(x, lowp, cols) if x.dim() == 2 else "bmm"
+            if path != "bmm":
+                y = self._network_grouped_conv(x, lowp, cols, fused=path == "conv-fused")
             else:
                 y = self._network_bmm(x, lowp, cols)
         if not want_logvar:
@@ -319,7 +320,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
         return y[..., :d], (self._bound_logvar(y[..., d:]) if bound_logvar else y[..., d:])
 
     #: ``"auto"`` (measured once per device, dtype and row count; see :mod:`torchrl_softae.modules.paths`),
-    #: ``"conv"`` or ``"bmm"``; the environment variable ``SOFTAE_INFERENCE_PATH`` sets the default
+    #: ``"conv"``, ``"conv-fused"`` or ``"bmm"``; the environment variable ``SOFTAE_INFERENCE_PATH``
+    #: sets the default
     inference_path: str = "auto"
 
     def _inference_path(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> str:
@@ -336,8 +338,11 @@ class EnsembleWorldModel(TensorDictModuleBase):
         shapes = ",".join(f"{layer.in_features}x{layer.out_features}" for layer in self.layers)
         key = f"ensemble {self.ensemble_size}|{shapes}|{dtype}|rows {rows}|cols {cols}"
         probe = torch.randn(rows, x.shape[1], dtype=x.dtype, generator=torch.Generator().manual_seed(0))
-        self._path_memo[memo] = paths.choose(key, {"conv": lambda: self._network_grouped_conv(probe, dtype, cols),
-                                                   "bmm": lambda: self._network_bmm(probe, dtype, cols)})
+        candidates = {"conv": lambda: self._network_grouped_conv(probe, dtype, cols)}
+        if self._fused_activation() is not None:
+            candidates["conv-fused"] = lambda: self._network_grouped_conv(probe, dtype, cols, fused=True)
+        candidates["bmm"] = lambda: self._network_bmm(probe, dtype, cols)
+        self._path_memo[memo] = paths.choose(key, candidates)
         return self._path_memo[memo]
 
     @torch.no_grad()
@@ -370,7 +375,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
         self._path_memo[memo] = torch.bfloat16 if choice == "bf16" else None
         return self._path_memo[memo]
 
-    def _network_grouped_conv(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
+    def _network_grouped_conv(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None,
+                              fused: bool = False) -> torch.Tensor:
         """Inference on a shared ``(N, in)`` input: the ensemble as grouped 1x1 convolutions.
 
         The ``N`` rows are the pixels of a channels-last ``(1, C, N, 1)`` image whose channels are
@@ -381,14 +387,23 @@ class EnsembleWorldModel(TensorDictModuleBase):
         EPYC, AVX-512) it runs at about 220 GFLOP/s against oneDNN's 450 (benchmarks/planning_speed.py
         prints both); in bf16 both are near 900.
 
+        ``fused``: the hidden activation runs inside the convolution (a oneDNN post-op,
+        :meth:`_fused_activation`): the layer's output is written once, already activated; in bf16
+        the separate activation pass cost a third of a plan on a CPU with AMX.
+
         Returns the ``(L, N, out)`` output as a view of an ``(N, L, out)`` buffer.
         """
         L, n = self.ensemble_size, x.shape[0]
         h = x.to(dtype).t().unsqueeze(0).unsqueeze(-1)  # (1, in, N, 1), channels-last view of x
         last = len(self.layers) - 1
+        attr = self._fused_activation() if fused else None
         for i, layer in enumerate(self.layers):
             w, b = self._conv_weights(layer, dtype, cols if i == last else None)
-            h = F.conv2d(h, w, b, groups=1 if i == 0 else L)
+            groups = 1 if i == 0 else L
+            if i < last and attr is not None:
+                h = torch.ops.mkldnn._convolution_pointwise(h, w, b, [0, 0], [1, 1], [1, 1], groups, attr, [], "")
+                continue
+            h = F.conv2d(h, w, b, groups=groups)
             if i < last:
                 h = self._activate_(h)
         # (1, L * out, N, 1) channels-last is an (N, L * out) buffer: view it as (L, N, out)
@@ -433,6 +448,14 @@ class EnsembleWorldModel(TensorDictModuleBase):
         # their ranking (Spearman >= 0.95) on a trained model.
         w, b = self._inference_weights(self.layers[-1], dtype, k, cols)
         return torch.baddbmm(b, x, w).reshape(L, n, -1).float()
+
+    def _fused_activation(self) -> str | None:
+        """oneDNN's post-op name of the hidden activation, or ``None`` where it has none (or this
+        torch build lacks the fused convolution)."""
+        if not hasattr(torch.ops.mkldnn, "_convolution_pointwise"):
+            return None
+        return {nn.SiLU: "swish", nn.ReLU: "relu", nn.Tanh: "tanh", nn.Hardswish: "hardswish",
+                nn.Sigmoid: "sigmoid"}.get(type(self.activation))
 
     def _activate_(self, x: torch.Tensor) -> torch.Tensor:
         """Activation in place on a fresh matmul output (inference only): a second large

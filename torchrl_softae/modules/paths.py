@@ -4,8 +4,9 @@ convolutions through oneDNN, or batched matmuls through MKL/cuBLAS) and whether 
 Which is faster depends on the CPU, not on its vendor (AMD EPYC without AMX: oneDNN's fp32 GEMM
 beats MKL's AVX2 path; Intel with AMX: MKL's fp32 GEMM beats oneDNN's), so each choice is timed
 once on the real shapes at first use and cached for the process and on disk
-(``$TORCHRL_SOFTAE_CACHE/paths.json``, keyed by CPU model, torch version and thread count), so a
-resumed run makes the same choice as the run it resumes. ``SOFTAE_INFERENCE_PATH=conv|bmm``
+(``$TORCHRL_SOFTAE_CACHE/paths.json``, keyed by CPU model, torch version, thread count and the
+candidates), so a resumed run makes the same choice as the run it resumes.
+``SOFTAE_INFERENCE_PATH=conv|conv-fused|bmm``
 (or ``EnsembleWorldModel.inference_path``) fixes it for reproducibility.
 """
 from __future__ import annotations
@@ -21,7 +22,10 @@ import torch
 
 __all__ = ["choose", "cache_path", "INFERENCE_PATHS"]
 
-INFERENCE_PATHS = ("conv", "bmm")
+#: grouped 1x1 convolutions (oneDNN) with the activation as its own kernel, the same with the
+#: activation fused into the convolution (a oneDNN post-op: one pass over the layer's output
+#: instead of two), batched matmuls
+INFERENCE_PATHS = ("conv", "conv-fused", "bmm")
 _LOCK = threading.RLock()  # re-entrant: a measured candidate may itself make a measured choice
 _MEMORY: dict[str, str] = {}
 
@@ -44,11 +48,6 @@ def _machine() -> str:
     return f"{model}|torch {torch.__version__}|{torch.get_num_threads()} threads"
 
 
-def _timed(fn, rounds: int = 3) -> float:
-    fn()  # warm-up: allocations, weight caches, oneDNN primitive creation
-    return statistics.median(_once(fn) for _ in range(rounds))
-
-
 def _once(fn) -> float:
     t = time.perf_counter()
     fn()
@@ -57,8 +56,9 @@ def _once(fn) -> float:
 
 def choose(key: str, candidates: dict) -> str:
     """The fastest of ``candidates`` (name -> zero-argument callable) for ``key``: measured once
-    (interleaved rounds, median), then remembered in this process and on disk."""
-    full = f"{_machine()}|{key}"
+    (interleaved rounds, median), then remembered in this process and on disk. A candidate that
+    raises (a kernel this build or CPU lacks) is not a candidate."""
+    full = f"{_machine()}|{key}|{','.join(candidates)}"
     with _LOCK:
         if full in _MEMORY:
             return _MEMORY[full]
@@ -72,9 +72,17 @@ def choose(key: str, candidates: dict) -> str:
         if disk.get(full) in candidates:
             _MEMORY[full] = disk[full]
             return disk[full]
+        working = {}
+        for name, fn in candidates.items():
+            try:
+                fn()  # warm-up
+            except RuntimeError:
+                continue
+            working[name] = fn
+        if not working:
+            raise RuntimeError(f"no candidate of {sorted(candidates)} runs for {key}")
+        candidates = working
         times = {name: [] for name in candidates}
-        for fn in candidates.values():
-            fn()  # warm-up
         for _ in range(3):
             for name, fn in candidates.items():
                 times[name].append(_once(fn))
