@@ -111,7 +111,8 @@ def test_sample_mode_particles_follow_distinct_members():
     assert torch.isfinite(r1).all()
 
 
-def test_bf16_ranking_matches_fp32():
+@pytest.mark.parametrize("path", ["conv", "conv-fused", "bmm"])
+def test_bf16_ranking_matches_fp32(path):
     from scipy.stats import spearmanr
 
     tenv = TransformedEnv(_model_env("optimistic"), Compose(HallucinatedControl(), UncertaintyReward()))
@@ -122,6 +123,7 @@ def test_bf16_ranking_matches_fp32():
     a = torch.rand(400, 2) * 2 - 1
     td = TensorDict({"observation": x, "action": a, ("next", "observation"): x + 0.3 * torch.sin(3 * a[:, :1] + x)}, [400])
     EnsembleTrainer(EnsembleLoss(tenv.base_env.world_model), lr=3e-3, epochs=20).fit(td)
+    tenv.base_env.world_model.inference_path = path  # every kernel path keeps the ranking
     fp32 = ICEMPlanner(tenv, planning_horizon=5)
     bf16 = ICEMPlanner(tenv, planning_horizon=5, precision="bf16")
     obs = TensorDict({"observation": torch.rand(1, 3) * 2 - 1}, [1])
