@@ -10,8 +10,8 @@ benchmarks/results/arm_sigma_groups.json.
 """
 from __future__ import annotations
 
+import argparse
 import json
-import sys
 from pathlib import Path
 
 import torch
@@ -22,7 +22,9 @@ from torchrl_softae.pipeline.runs import RunDir
 
 
 def main():
-    run_dir = Path(sys.argv[1])
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run_dir", help="a soft-arm run dir")
+    run_dir = Path(p.parse_args().run_dir)
     cfg, model, state = load_run(run_dir)
     rb = RunDir(run_dir).load_replay_buffer(state)
     obs = rb.storage[: len(rb)]["observation"]

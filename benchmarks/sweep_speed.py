@@ -14,6 +14,7 @@ worker) right after start. Results: stdout and benchmarks/results/sweep_speed.js
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -67,6 +68,7 @@ def ray_cost() -> dict:
 
 
 def main():
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     work = Path(tempfile.mkdtemp(prefix="sweep_speed_"))
     res = {"cpu": platform.processor() or platform.machine(), "cores": len(os.sched_getaffinity(0)),
            "grid": "Pendulum-v1, 4 methods x 3 seeds, quick preset, 2 episodes x 100 steps"}
