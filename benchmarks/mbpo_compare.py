@@ -130,25 +130,36 @@ def plot(env: str, tag: str = "") -> Path | None:
     if not rows:
         return None
     task_i, task_ii = SETUPS[env][:2]
+    methods = [m for m in LABELS if any(r["method"] == m for r in rows)]
+    all_budgets = sorted({r["transitions"] for r in rows})
+    # methods side by side around each budget (dodged), so that equal budgets do not hide each other
+    gap = min(np.diff(all_budgets)) if len(all_budgets) > 1 else all_budgets[0]
+    width = 0.5 * gap / max(len(methods), 1) if len(all_budgets) > 1 else 0.15 * gap / max(len(methods), 1)
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharex=True)
     for j, (task, role) in enumerate(((task_i, "(i), MBPO's training task"), (task_ii, "(ii), unseen by MBPO"))):
         ax = axes[j]
-        for c, m in enumerate(m for m in LABELS if any(r["method"] == m for r in rows)):
+        for c, m in enumerate(methods):
             budgets = sorted({r["transitions"] for r in rows if r["method"] == m})
             vals = [[r["tasks"][task]["mean_return"] for r in rows if r["method"] == m and r["transitions"] == b]
                     for b in budgets]
             mean, std = np.array([np.mean(v) for v in vals]), np.array([np.std(v) for v in vals])
             n = sorted({len(v) for v in vals})
-            ax.errorbar(budgets, mean, yerr=std, marker="o", capsize=3, color=f"C{c}",
+            x = np.array(budgets, dtype=float) + (c - (len(methods) - 1) / 2) * width
+            ax.errorbar(x, mean, yerr=std, marker="o", capsize=3, color=f"C{c}",
                         label=f"{LABELS[m]} ({'/'.join(map(str, n))} seeds)")
-        ax.set_title(f"{env}: {task} {role}")
+            for xi, v in zip(x, vals):  # every seed
+                ax.plot([xi] * len(v), v, ".", color=f"C{c}", alpha=0.45, ms=5)
+        ax.set_xticks(all_budgets)
+        if len(all_budgets) == 1:
+            ax.set_xlim(all_budgets[0] - 0.25 * gap, all_budgets[0] + 0.25 * gap)
+        ax.set_title(f"{task} {role}", fontsize=11)
         ax.set_xlabel("real transitions")
-        ax.set_ylabel("real return (mean +- std over seeds)")
+        ax.set_ylabel("real return (mean +- std; dots: seeds)")
         ax.grid(alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8)  # below, off the curves
     per = rows[0]["policy_updates_per_task"] // rows[0]["transitions"]
-    fig.suptitle(f"SAC on the learned model, {per} updates per real transition per task policy; real-env returns",
+    fig.suptitle(f"{env}: SAC on the learned model, {per} updates per real transition per task policy; real-env returns",
                  fontsize=10)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     path = RESULTS / (env + tag) / "return_vs_transitions.png"
