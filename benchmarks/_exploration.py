@@ -13,7 +13,7 @@ import torch
 
 from torchrl_softae.pipeline.cli import PRESETS, plain_output
 from torchrl_softae.pipeline.config import make_config
-from torchrl_softae.pipeline.evaluate import evaluate_run, reference_returns
+from torchrl_softae.pipeline.evaluate import REFERENCE_POLICIES, evaluate_run, reference_returns
 from torchrl_softae.pipeline.explore import explore
 from torchrl_softae.pipeline.plots import plot_comparison
 
@@ -34,7 +34,6 @@ def parse(doc: str, env: str, episodes: int, eval_episodes: int) -> argparse.Nam
     return p.parse_args()
 
 
-REFERENCES = {"random": "random actions, no model", "zero": "no control (zero action)"}
 
 
 def run(args, tasks: list[str], overrides: list[str], metric_keys: dict[str, str], note: str = "",
@@ -90,7 +89,7 @@ def run(args, tasks: list[str], overrides: list[str], metric_keys: dict[str, str
     if references:
         cache = root / "references.json"
         known = json.loads(cache.read_text()) if cache.exists() else {}
-        for policy, label in REFERENCES.items():
+        for policy, label in REFERENCE_POLICIES.items():
             for task in tasks:
                 key = f"{task}/{policy}/{args.eval_episodes}"
                 if key not in known:

@@ -42,7 +42,7 @@ command:
   - "disabled"
   - "--quiet"
   - ${args}
-evaluate: {tasks: [swingup], episodes: 1, planner: {horizon: 2}}
+evaluate: {tasks: [swingup], episodes: 1, planner: {horizon: 2}, references: true}
 """
 HAS_RAY = importlib.util.find_spec("ray") is not None
 
@@ -123,6 +123,8 @@ def test_local_processes_sweep_resumes_a_killed_trial(tmp_path, capsys, monkeypa
     assert "## Pendulum-v1: 3 episodes = 60 transitions per run" in out
     assert "| random | 2 |" in out and "| softae | 2 |" in out and "swingup@horizon=2 return" in out
     assert "random seed 7, 1 of 3 episodes" in out
+    # the model-free references on the same evaluation episode, one row each
+    assert "| *random actions, no model* | - | - | - |" in out and "| *no control (zero action)* |" in out
     data = json.loads((root / "report.json").read_text())
     assert [r["method"] for r in data["tables"][0]["rows"]] == ["random", "softae"]
     assert data["unfinished"][0]["episodes_done"] == 1
@@ -166,6 +168,8 @@ def test_report_and_plots_never_average_runs_of_different_beta(tmp_path, capsys)
     (TINY.replace("beta: {value: 2.0}", "set: {value: planner.precision=fp8}"), [], "planner.precision='fp8'"),
     (TINY.replace("method: grid", "method: bayes"), [], "needs W&B's sweep controller"),
     (TINY, ["--address", "auto"], "--storage"),
+    (TINY.replace("episodes: 1,", "episodez: 1,"), [], "evaluate block: unknown key(s) 'episodez'"),
+    (TINY.replace("tasks: [swingup]", "tasks: [swingdown]"), [], "evaluate block: unknown task 'swingdown'"),
 ])
 def test_bad_sweep_input_is_one_line_before_any_trial(tmp_path, capsys, text, args, needle):
     f = _write(tmp_path, text)
@@ -190,7 +194,7 @@ def test_a_sweep_policy_block_trains_task_policies_and_the_report_shows_them(tmp
     text = TINY.replace("method: {values: [random, softae]}", "method: {values: [random, mbpo-ts]}").replace(
         "seed: {values: [0, 1]}", "seed: {values: [3]}\n  task: {value: swingup}").replace(
         '"3"\n', '"1"\n').replace(
-        "evaluate: {tasks: [swingup], episodes: 1, planner: {horizon: 2}}",
+        "evaluate: {tasks: [swingup], episodes: 1, planner: {horizon: 2}, references: true}",
         "policy: {tasks: [swingup, spin], episodes: 1, updates: 10}")
     text = text.replace('  - "--quiet"', '  - "--set"\n  - "policy.num_cells=16"\n  - "--set"\n  - "policy.rollout_batch=8"\n'
                         '  - "--set"\n  - "policy.updates_per_rollout=10"\n  - "--set"\n  - "policy.updates_per_step=1"\n'

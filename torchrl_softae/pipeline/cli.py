@@ -70,12 +70,15 @@ def cmd_evaluate(args) -> int:
     _threads(args.threads)
     progress, _ = _progress_style(args)
     res = evaluate_run(args.run_dir, tasks=args.task or None, episodes=args.episodes, seed=args.seed,
-                       propagation=args.propagation, progress=progress, planner_overrides=args.overrides)
+                       propagation=args.propagation, progress=progress, planner_overrides=args.overrides,
+                       references=args.references)
     print(f"{args.run_dir}: held-out normalized MSE {res['heldout_nmse']:.4g}")
     for name, r in res["tasks"].items():
         extra = _metrics_summary(r["metrics"])
         extra = "  " + extra if extra else ""
         print(f"  {name:>12}: mean return {r['mean_return']:.4g} over {len(r['returns'])} episodes{extra}")
+    for label, per_task in (res.get("references") or {}).get("returns", {}).items():
+        print(f"  {label}: " + ", ".join(f"{t} {sum(v) / len(v):.4g}" for t, v in per_task.items() if t in res["tasks"]))
     return 0
 
 
@@ -216,6 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default mean); optimistic plans with the run's beta")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="planner.KEY=VALUE",
                    help="plan the task differently from exploration, e.g. --set planner.horizon=30 (repeatable)")
+    p.add_argument("--references", action="store_true",
+                   help="also the returns of model-free references (random actions, no control) on the same episodes")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_evaluate)

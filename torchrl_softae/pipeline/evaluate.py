@@ -1,6 +1,7 @@
 """Zero-shot evaluation: the explored model + iCEM solve a task they never saw, on the real env."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,8 @@ from torchrl_softae.pipeline.data import ModelAccuracy, episode_seed, make_real_
 from torchrl_softae.pipeline.runs import CheckpointError, RunDir
 from torchrl_softae.tasks.base import Task, TaskReward
 
-__all__ = ["load_run", "zero_shot", "task_policy", "reference_returns", "evaluate_run", "eval_file_name"]
+__all__ = ["load_run", "zero_shot", "task_policy", "reference_returns", "evaluate_run", "eval_file_name",
+           "write_references", "REFERENCE_POLICIES", "REFERENCES_FILE"]
 
 
 def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, dict]:
@@ -159,6 +161,11 @@ def _task_rollouts_batched(env: str, task: Task, episodes: int, seed: int, polic
     return {"returns": returns, "metrics": metrics, "initial_states": starts}
 
 
+#: the model-free references a zero-shot controller is put next to, and their table labels
+REFERENCE_POLICIES = {"random": "random actions, no model", "zero": "no control (zero action)"}
+REFERENCES_FILE = "references.json"  # RUN/eval/references.json (write_references)
+
+
 @torch.no_grad()
 def reference_returns(env: str, task: str, policy: str = "random", episodes: int = 3, seed: int = 0) -> list[float]:
     """Task returns without a model, on the same episodes (seeds) as :func:`zero_shot`.
@@ -167,8 +174,8 @@ def reference_returns(env: str, task: str, policy: str = "random", episodes: int
     does); ``"zero"``: the centre of the action space at every step (no control). They tell a
     zero-shot controller that solves a task from one that does no better than not trying.
     """
-    if policy not in ("random", "zero"):
-        raise ValueError(f"reference policy {policy!r}: expected 'random' or 'zero'")
+    if policy not in REFERENCE_POLICIES:
+        raise ValueError(f"reference policy {policy!r}: expected one of {', '.join(REFERENCE_POLICIES)}")
     entry = get_env_entry(env)
     if task not in entry.tasks:
         raise ConfigError(f"unknown task {task!r} for env {env!r}; valid tasks: {', '.join(sorted(entry.tasks))}")
@@ -186,12 +193,15 @@ def reference_returns(env: str, task: str, policy: str = "random", episodes: int
 def evaluate_run(
     run_dir: str | Path, tasks: list[str] | None = None, episodes: int = 3, seed: int = 0,
     propagation: str = "mean", progress: bool = True, planner_overrides: list[str] | None = None,
+    references: bool = False,
 ) -> dict:
     """Zero-shot returns on ``tasks`` (default: all of the env's) and held-out normalized MSE.
 
     ``planner_overrides`` (``["planner.horizon=30", ...]``) plan the tasks differently from the
     exploration. Results are written to ``RUN/eval/TASK.json`` (``TASK@key=value,...json`` with
-    overrides) and ``RUN/eval/model_accuracy.json``.
+    overrides) and ``RUN/eval/model_accuracy.json``. ``references``: also the returns of the
+    model-free references (:data:`REFERENCE_POLICIES`) on the same episodes, to
+    ``RUN/eval/references.json`` (``softae report`` adds them as rows).
     """
     cfg, model, state = load_run(run_dir)
     if planner_overrides:
@@ -220,4 +230,23 @@ def evaluate_run(
                    episodes_explored=out["episodes_explored"])
         run.write_json(run.eval_dir / eval_file_name(name, planner_overrides), res)
         out["tasks"][name] = res
+    if references:
+        out["references"] = write_references(run, cfg.env, names, episodes, seed)
     return out
+
+
+def write_references(run: RunDir, env: str, tasks: list[str], episodes: int, seed: int) -> dict:
+    """The model-free references' returns on ``tasks`` (the evaluation's episodes), merged into
+    ``RUN/eval/references.json``: ``{"episodes", "seed", "returns": {label: {task: [...]}}}``."""
+    path = run.eval_dir / REFERENCES_FILE
+    known = json.loads(path.read_text()) if path.exists() else {}
+    if known.get("episodes") != episodes or known.get("seed") != seed:
+        known = {"episodes": episodes, "seed": seed, "returns": {}}
+    for policy, label in REFERENCE_POLICIES.items():
+        per_task = known["returns"].setdefault(label, {})
+        for task in tasks:
+            if task not in per_task:
+                per_task[task] = reference_returns(env, task, policy, episodes, seed)
+    run.write_json(path, known)
+    return known
+

@@ -75,7 +75,14 @@ def _evals(run: RunDir) -> dict[str, dict]:
     folder = run.path / "eval"
     if not folder.exists():
         return {}
-    return {p.stem: json.loads(p.read_text()) for p in sorted(folder.glob("*.json")) if p.stem != "model_accuracy"}
+    return {p.stem: json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))
+            if p.stem not in ("model_accuracy", "references")}
+
+
+def _references(run: RunDir) -> dict[str, dict]:
+    """The model-free references' returns of a run's evaluation (``{label: {task: [...]}}``)."""
+    path = run.path / "eval" / "references.json"
+    return json.loads(path.read_text())["returns"] if path.exists() else {}
 
 
 def _success_metric(entry, task: str) -> str | None:
@@ -217,6 +224,13 @@ def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
                 ret = [[np.mean(e["returns"]) for e in per_method[m]] for m in methods]
                 axes[0][j].bar(methods, [np.mean(r) if r else np.nan for r in ret],
                                yerr=[np.std(r) if r else 0 for r in ret], capsize=4, color="C2")
+                refs = next((_references(r) for m in methods for r, _ in by_method[m] if _references(r)), {})
+                for k, (label, per_task) in enumerate(refs.items()):  # the same episodes without a model
+                    if per_task.get(task.split("@")[0]):
+                        axes[0][j].axhline(np.mean(per_task[task.split("@")[0]]), color="k", lw=1,
+                                           ls=("--", ":")[k % 2], label=label)
+                if refs and j == len(tasks) - 1:
+                    axes[0][j].legend(fontsize=7)
                 axes[0][j].set_title(task, fontsize=10)
                 axes[0][j].tick_params(axis="x", rotation=30)
                 if rows == 2:

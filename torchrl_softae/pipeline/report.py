@@ -5,7 +5,8 @@ together): one row per method with mean +- std over seeds of the held-out normal
 coverage and each evaluated task's zero-shot return (and its success measure where the task has
 one), the real returns of the SAC task policies trained on the run's final model (``softae
 policy``, ``RUN/policies/``), plus the model-free reference rows where a run dir holds
-``eval/references.json``. Runs that
+``eval/references.json`` (``softae evaluate --references``, a sweep's ``evaluate: {references:
+true}``). Runs that
 have not reached their configured number of episodes are listed as unfinished, never averaged.
 Markdown and JSON go to ``ROOT/report.md`` and ``ROOT/report.json``; comparison plots to
 ``ROOT/plots/``.
@@ -120,25 +121,24 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
             rows.append(row)
             md_row = "| " + " | ".join(cells) + " |"
             row["markdown"] = md_row
-        refs = defaultdict(list)
-        for rs in by_method.values():
-            for r in rs:
-                for name, vals in (r["evals"].get("references") or {}).items():
-                    refs[name].append(vals)
+        # model-free reference rows: the same evaluation episodes for every run, so one run's say
+        refs = next((r["evals"]["references"]["returns"] for rs in by_method.values() for r in rs
+                     if "references" in r["evals"]), {})
         md += [f"## {env}: {episodes} episodes = {transitions} transitions per run", "",
                "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         md += [row["markdown"] for row in rows]
-        for name, vals in refs.items():
+        for name, per_task in refs.items():
             cells = [f"*{name}*", "-", "-", "-"]
             for t in tasks:
-                cells.append(_fmt([v.get(t) for v in vals], 3))
+                cells.append(_fmt(per_task.get(t.split("@")[0], []), 3))
                 if metric_of[t]:
                     cells.append("-")
             cells += ["-"] * len(policy_tasks)
             md.append("| " + " | ".join(cells) + " |")
         md.append("")
         tables.append({"env": env, "episodes": episodes, "transitions": transitions, "columns": head,
-                       "rows": [{k: v for k, v in row.items() if k != "markdown"} for row in rows]})
+                       "rows": [{k: v for k, v in row.items() if k != "markdown"} for row in rows],
+                       "references": refs})
     if unfinished:
         md += ["## Unfinished runs (not averaged)", ""]
         md += [f"- {r['run_dir']}: {r['method']} seed {r['seed']}, {r['episodes_done']} of {r['episodes_target']} "

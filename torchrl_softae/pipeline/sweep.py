@@ -19,6 +19,7 @@ Sweep file (W&B's format, so ``wandb sweep FILE`` works where a W&B server exist
       episodes: 3
       propagation: mean
       planner: {horizon: 30}
+      references: true             # + model-free references on the same episodes (report rows)
     policy:                        # optional, ours: `softae policy` (SAC on the model) per task
       tasks: [swingup, spin]
       episodes: 5                  # real evaluation episodes
@@ -149,9 +150,38 @@ def expand(spec: dict, root: str | Path) -> tuple[list[Trial], int]:
         run_dir = Path(run_dir_for(cfg, str(root))).resolve()
         name = f"{cfg.env}/{run_dir.name}"
         trials.append(Trial(name, argv[1:] + [f"--run-dir={run_dir}"], run_dir, cfg.episodes,
-                            spec.get("evaluate"), dict(run), policy=_policy_block(spec, cfg), seed=cfg.seed,
+                            _evaluate_block(spec, cfg), dict(run), policy=_policy_block(spec, cfg), seed=cfg.seed,
                             method=cfg.method))
     return trials, total - len(trials)
+
+
+#: what a sweep's evaluate block may say
+EVALUATE_KEYS = ("tasks", "episodes", "propagation", "planner", "references")
+
+
+def _evaluate_block(spec: dict, cfg) -> dict | None:
+    """The sweep's ``evaluate`` block, checked against the run's env before anything runs."""
+    from torchrl_softae.envs.model_env import PROPAGATION_MODES
+    from torchrl_softae.pipeline.catalog import get_env_entry
+
+    block = spec.get("evaluate")
+    if block is None:
+        return None
+    if not isinstance(block, dict):
+        raise ConfigError(f"the sweep's evaluate block: expected a mapping of {', '.join(EVALUATE_KEYS)}, got {block!r}")
+    unknown = sorted(set(block) - set(EVALUATE_KEYS))
+    if unknown:
+        raise ConfigError(f"evaluate block: unknown key(s) {', '.join(map(repr, unknown))}; valid: {', '.join(EVALUATE_KEYS)}")
+    entry = get_env_entry(cfg.env)
+    for task in block.get("tasks") or []:
+        if task not in entry.tasks:
+            raise ConfigError(f"evaluate block: unknown task {task!r} for env {cfg.env!r}; valid tasks: "
+                              f"{', '.join(sorted(entry.tasks))}")
+    if block.get("propagation", "mean") not in PROPAGATION_MODES:
+        raise ConfigError(f"evaluate block: propagation {block['propagation']!r}; valid: {', '.join(PROPAGATION_MODES)}")
+    if not isinstance(block.get("references", False), bool):
+        raise ConfigError(f"evaluate block: references {block['references']!r}; expected true or false")
+    return dict(block)
 
 
 def _policy_block(spec: dict, cfg) -> dict | None:
@@ -198,14 +228,21 @@ def _planner_overrides(evaluate: dict) -> list[str] | None:
 
 
 def _evaluated(trial: Trial) -> bool:
-    from torchrl_softae.pipeline.evaluate import eval_file_name
+    from torchrl_softae.pipeline.evaluate import REFERENCES_FILE, eval_file_name
 
     if not trial.evaluate:
         return True
     eval_dir = trial.run_dir / "eval"
-    for task in trial.evaluate.get("tasks") or []:
+    tasks = trial.evaluate.get("tasks") or []
+    for task in tasks:
         f = eval_dir / eval_file_name(task, _planner_overrides(trial.evaluate))
         if not f.exists() or json.loads(f.read_text()).get("episodes_explored") != trial.episodes:
+            return False
+    if trial.evaluate.get("references"):
+        f = eval_dir / REFERENCES_FILE
+        refs = json.loads(f.read_text()) if f.exists() else {}
+        if refs.get("episodes") != int(trial.evaluate.get("episodes", 3)) or \
+                not all(t in per_task for per_task in refs["returns"].values() for t in tasks):
             return False
     return (eval_dir / "model_accuracy.json").exists()
 
@@ -227,7 +264,7 @@ def run_trial(trial: Trial, threads: int, on_episode=None) -> dict:
         ev = trial.evaluate
         res = evaluate_run(trial.run_dir, tasks=ev.get("tasks"), episodes=int(ev.get("episodes", 3)),
                            propagation=ev.get("propagation", "mean"), progress=False,
-                           planner_overrides=_planner_overrides(ev))
+                           planner_overrides=_planner_overrides(ev), references=bool(ev.get("references")))
         row.update({f"return/{k}": v["mean_return"] for k, v in res["tasks"].items()})
         if on_episode is not None:
             on_episode({**history[-1], **row, "evaluated": 1})
