@@ -218,7 +218,8 @@ def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
         if tasks:
             metric_of = {t: _success_metric(entry, t) for t in tasks}
             rows = 2 if any(metric_of.values()) else 1
-            fig, axes = plt.subplots(rows, len(tasks), figsize=(3.4 * len(tasks) + 1, 3.2 * rows), squeeze=False)
+            fig, axes = plt.subplots(rows, len(tasks), figsize=(max(3.4 * len(tasks) + 1, 6.5), 3.2 * rows),
+                                     squeeze=False)  # wide enough for the title
             for j, task in enumerate(tasks):
                 per_method = {m: [_evals(r)[task] for r, _ in by_method[m] if task in _evals(r)] for m in methods}
                 ret = [[np.mean(e["returns"]) for e in per_method[m]] for m in methods]
