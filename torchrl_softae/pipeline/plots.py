@@ -56,7 +56,8 @@ def _coverage_panels(points: dict, entry, title: str, path: Path, bins: int = 40
     counts = {k: np.histogram2d(p[:, 0], p[:, 1], bins=edges)[0] for k, p in points.items()}
     vmax = max(c.max() for c in counts.values())
     n = len(points)
-    fig, axes = plt.subplots(1, n, figsize=(3.4 * n + 1.2, 3.4), squeeze=False, sharex=True, sharey=True)
+    fig, axes = plt.subplots(1, n, figsize=(3.4 * n + 1.2, 3.7), squeeze=False, sharex=True, sharey=True)
+    fig.subplots_adjust(top=0.82)  # room for the figure title above the panel titles
     mesh = None
     for ax, (label, c) in zip(axes[0], counts.items()):
         mesh = ax.pcolormesh(edges[0], edges[1], np.where(c > 0, c, np.nan).T, cmap="viridis",
