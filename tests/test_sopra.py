@@ -374,11 +374,12 @@ def test_pipeline_explores_the_twin(tmp_path):
     from torchrl_softae.pipeline.cli import main
     from torchrl_softae.pipeline.runs import RunDir
 
-    argv = ["explore", "--env", "SoPrA-v0", "--method", "softae", "--episodes", "1", "--episode-length", "10",
+    # two episodes: the env (and its safety layer, which never re-arms once closed) lives across them
+    argv = ["explore", "--env", "SoPrA-v0", "--method", "softae", "--episodes", "2", "--episode-length", "10",
             "--run-dir", str(tmp_path), "--wandb", "disabled", "--quiet", "--set", "heldout_size=100",
             "--set", "model.num_cells=32", "--set", "model.depth=2", "--set", "planner.num_candidates=10",
             "--set", "planner.top_k=2", "--set", "planner.optim_steps=1", "--set", "train.epochs=2"]
     assert main(argv) == 0
     state = RunDir(tmp_path).load()
-    assert state["num_transitions"] == 10
+    assert state["num_transitions"] == 20
     assert main(["evaluate", "--run-dir", str(tmp_path), "--task", "reach-close", "--episodes", "1", "--quiet"]) == 0

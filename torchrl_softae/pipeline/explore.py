@@ -168,40 +168,42 @@ class Explorer:
             from tqdm.auto import tqdm
 
             bar = tqdm(total=cfg.episodes, initial=start, desc=f"explore {cfg.env} [{cfg.method}]", unit="episode")
-        for n in range(start, cfg.episodes):
-            row = self._episode(n, env, model, trainer, rb, accuracy, bounds, learner)
-            history.append(row)
-            # No RNG state: every episode reseeds from (seed, episode), so a resumed run draws the
-            # same numbers as an uninterrupted one.
-            state = {
-                "episode": n, "config": cfg.to_dict(), "model": model.state_dict(), "trainer": trainer.state_dict(),
-                "history": history, "wandb_id": wandb_id,
-            }
-            if learner is not None:  # the SAC policy, its optimizer and imagined data (MBPO methods)
-                state["policy"] = learner.state_dict()
-            self.run.save(state, rb)
-            if self.on_episode is not None:
-                self.on_episode(row)
-            exit_once_after(FAULT_ENV, n + 1, self.run.path, "episode")
-            if logger is not None:
-                for k, v in row.items():
-                    if isinstance(v, (int, float)) and k != "episode" and math.isfinite(v):
-                        logger.log_scalar(k, v, step=n)
+        try:
+            for n in range(start, cfg.episodes):
+                row = self._episode(n, env, model, trainer, rb, accuracy, bounds, learner)
+                history.append(row)
+                # No RNG state: every episode reseeds from (seed, episode), so a resumed run draws the
+                # same numbers as an uninterrupted one.
+                state = {
+                    "episode": n, "config": cfg.to_dict(), "model": model.state_dict(), "trainer": trainer.state_dict(),
+                    "history": history, "wandb_id": wandb_id,
+                }
+                if learner is not None:  # the SAC policy, its optimizer and imagined data (MBPO methods)
+                    state["policy"] = learner.state_dict()
+                self.run.save(state, rb)
+                if self.on_episode is not None:
+                    self.on_episode(row)
+                exit_once_after(FAULT_ENV, n + 1, self.run.path, "episode")
+                if logger is not None:
+                    for k, v in row.items():
+                        if isinstance(v, (int, float)) and k != "episode" and math.isfinite(v):
+                            logger.log_scalar(k, v, step=n)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(nmse=f"{row['heldout_nmse']:.3g}", cov=f"{row['coverage']:.2f}")
+                elif self.echo is not None:
+                    self.echo(f"episode {n + 1}/{cfg.episodes}: {row['transitions']} transitions, held-out normalized MSE "
+                              f"{row['heldout_nmse']:.4g}, coverage {row['coverage']:.3f}, collect {row['collect_seconds']:.0f} s, "
+                              f"train {row['train_seconds']:.0f} s"
+                              + (f", SAC {row['policy_seconds']:.0f} s" if "policy_seconds" in row else ""))
             if bar is not None:
-                bar.update(1)
-                bar.set_postfix(nmse=f"{row['heldout_nmse']:.3g}", cov=f"{row['coverage']:.2f}")
-            elif self.echo is not None:
-                self.echo(f"episode {n + 1}/{cfg.episodes}: {row['transitions']} transitions, held-out normalized MSE "
-                          f"{row['heldout_nmse']:.4g}, coverage {row['coverage']:.3f}, collect {row['collect_seconds']:.0f} s, "
-                          f"train {row['train_seconds']:.0f} s"
-                          + (f", SAC {row['policy_seconds']:.0f} s" if "policy_seconds" in row else ""))
-        if bar is not None:
-            bar.close()
-        if logger is not None:
-            import wandb
+                bar.close()
+            if logger is not None:
+                import wandb
 
-            wandb.finish()
-        env.close()
+                wandb.finish()
+        finally:  # a failed episode still closes the env: a real robot vents
+            env.close()
         self.model, self.replay_buffer, self.history = model, rb, history
         return history
 
@@ -229,12 +231,15 @@ class Explorer:
         faults_before = env.base_env.num_faults
         with warnings.catch_warnings():
             warnings.simplefilter("always", EnvFaultWarning)
+            # One batch of one episode. The env lives across episodes: a real robot's safety layer
+            # never re-arms once closed, and a Collector closes its env when it reaches
+            # total_frames, so it gets no total (-1) and is shut down keeping the env open.
             collector = Collector(
-                env, policy, frames_per_batch=cfg.episode_length, total_frames=cfg.episode_length,
+                env, policy, frames_per_batch=cfg.episode_length, total_frames=-1,
                 auto_register_policy_transforms=False,
             )
             data = next(iter(collector))
-            collector.shutdown()
+            collector.shutdown(close_env=False)
         if step_bar is not None:
             step_bar.close()
         data = data.reshape(-1)
