@@ -166,6 +166,16 @@ def _load_ok(runs: list[RunDir], warn) -> list[tuple[RunDir, dict]]:
     return ok
 
 
+def _seed_bars(ax, labels: list[str], values: list[list[float]], color: str) -> None:
+    """Bars of the mean over seeds with min-max whiskers (never outside what a seed reached, e.g.
+    below 0 for a fraction) and every seed as a dot."""
+    means = [np.mean(v) if v else np.nan for v in values]
+    err = [[m - min(v) if v else 0 for m, v in zip(means, values)], [max(v) - m if v else 0 for m, v in zip(means, values)]]
+    ax.bar(labels, means, yerr=err, capsize=4, color=color)
+    for i, v in enumerate(values):
+        ax.plot([i] * len(v), v, ".", color="k", ms=4)
+
+
 def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
     """Per env and budget: bars of held-out normalized MSE and zero-shot returns per method over the
     seeds, and one coverage heatmap per method (all its seeds' data), below ``folder/plots``."""
@@ -224,8 +234,7 @@ def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
             for j, task in enumerate(tasks):
                 per_method = {m: [_evals(r)[task] for r, _ in by_method[m] if task in _evals(r)] for m in methods}
                 ret = [[np.mean(e["returns"]) for e in per_method[m]] for m in methods]
-                axes[0][j].bar(methods, [np.mean(r) if r else np.nan for r in ret],
-                               yerr=[np.std(r) if r else 0 for r in ret], capsize=4, color="C2")
+                _seed_bars(axes[0][j], methods, ret, "C2")
                 refs = next((_references(r) for m in methods for r, _ in by_method[m] if _references(r)), {})
                 for k, (label, per_task) in enumerate(refs.items()):  # the same episodes without a model
                     if per_task.get(task.split("@")[0]):
@@ -239,14 +248,13 @@ def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
                     metric = metric_of[task]
                     if metric:
                         vals = [[np.mean([x[metric] for x in e["metrics"]]) for e in per_method[m]] for m in methods]
-                        axes[1][j].bar(methods, [np.mean(v) if v else np.nan for v in vals],
-                                       yerr=[np.std(v) if v else 0 for v in vals], capsize=4, color="C4")
+                        _seed_bars(axes[1][j], methods, vals, "C4")
                         axes[1][j].set_ylabel(metric.replace("_", " "), fontsize=9)
                         axes[1][j].tick_params(axis="x", rotation=30)
                     else:
                         axes[1][j].axis("off")
-            axes[0][0].set_ylabel("zero-shot return\n(mean +- std over seeds)")
-            fig.suptitle(title, fontsize=11)
+            axes[0][0].set_ylabel("zero-shot return")
+            fig.suptitle(f"{title}\nbar: mean over seeds, whiskers: min-max, dots: seeds", fontsize=10)
             written.append(_save(fig, out_dir / f"{prefix}task_returns.png"))
 
         points = {f"{m} ({len(by_method[m])} seed{'s' * (len(by_method[m]) != 1)}, cov. "
