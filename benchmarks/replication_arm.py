@@ -134,8 +134,11 @@ def plot() -> Path | None:
         budgets = sorted({r["episodes"] for r in rs})
         for j, t in enumerate(TASKS):
             vals = [[r["tasks"][t]["mean_return"] for r in rs if r["episodes"] == b] for b in budgets]
-            axes[j + 1].errorbar(budgets, [np.mean(v) for v in vals], yerr=[np.std(v) for v in vals], marker="o",
+            x = np.array(budgets, dtype=float) + 0.35 * (c - (len(methods) - 1) / 2)  # dodged: no method hides another
+            axes[j + 1].errorbar(x, [np.mean(v) for v in vals], yerr=[np.std(v) for v in vals], marker="o",
                                  capsize=3, color=f"C{c}", label=f"{m} ({'/'.join(str(len(v)) for v in vals)} seeds)")
+            for xi, v in zip(x, vals):  # every seed
+                axes[j + 1].plot([xi] * len(v), v, ".", color=f"C{c}", alpha=0.45, ms=4)
     identity = rows[0]["accuracy"]["heldout_nmse_identity"]
     axes[0].axhline(identity, color="k", ls="--", lw=1, label=f"s' = s ({identity:.3f})")
     axes[0].set_yscale("log")
@@ -148,6 +151,7 @@ def plot() -> Path | None:
         ax.set_title(f"{ENV}: zero-shot {t}")
         ax.set_xlabel("exploration episodes")
         ax.set_ylabel("return (sum of g(d), max 200)")
+        ax.set_xticks(sorted({r["episodes"] for r in rows}))
         ax.set_ylim(bottom=0)
         ax.legend(fontsize=7)
     for ax in axes:
