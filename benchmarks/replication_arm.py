@@ -4,7 +4,7 @@
     python benchmarks/replication_arm.py --table          # the table from every finished result
     python benchmarks/replication_arm.py --plot           # nMSE vs episode, returns vs budget
 
-Each ``METHOD:SEED`` explores ``SoftArm-v1`` at the paper's model, training and iCEM settings
+Each ``METHOD:SEED`` explores ``SoftArm-v1`` (or ``--env SoftArm136-v1``, Fig. 3C) at the paper's model, training and iCEM settings
 (Tables S6, S7; the ``paper`` preset), ``planner.precision=auto`` (bf16 where the CPU has native
 bf16; it keeps the candidate ranking, ``test_bf16_ranking_matches_fp32``). After each budget of
 ``--budgets`` exploration episodes it evaluates zero-shot (mean propagation, H = 10): (i)
@@ -13,7 +13,7 @@ reach-any over ``--any-episodes`` targets drawn from the held-out distribution; 
 held-out normalized MSE (reference-set std), with the s' = s and predict-the-mean baselines.
 
 Every finished (run, budget) is written at once as compact JSON to
-``benchmarks/results/arm_v1/METHOD-sSEED-epBUDGET.json`` (history up to the budget + evaluation),
+``benchmarks/results/arm_v1/METHOD-sSEED-epBUDGET.json`` (``arm136_v1/`` for the 136D arm) (history up to the budget + evaluation),
 so results survive the run dirs; rerunning skips finished budgets and resumes a killed run.
 H-UCRL explores optimistically on task (i), as in the paper.
 """
@@ -27,22 +27,27 @@ from pathlib import Path
 import numpy as np
 import torch
 
-RESULTS = Path(__file__).parent / "results" / "arm_v1"
-ENV = "SoftArm-v1"
+#: env -> results folder name (and run dirs' folder under results/runs/)
+SETUPS = {"SoftArm-v1": "arm_v1", "SoftArm136-v1": "arm136_v1"}
+
+
+def results_dir(env: str) -> Path:
+    return Path(__file__).parent / "results" / SETUPS[env]
 TASKS = ["reach-close", "reach-far", "reach-any"]
 PAPER = {"random": 0.2397, "hucrl": 0.7232, "softae": 0.0526}
 
 
-def run_one(method: str, seed: int, budgets: list[int], any_episodes: int, root: Path, overrides: list[str]) -> None:
+def run_one(env: str, method: str, seed: int, budgets: list[int], any_episodes: int, root: Path,
+            overrides: list[str]) -> None:
     from torchrl_softae.pipeline.config import make_config
     from torchrl_softae.pipeline.evaluate import evaluate_run
     from torchrl_softae.pipeline.explore import explore
 
     for budget in budgets:
-        out = RESULTS / f"{method}-s{seed}-ep{budget}.json"
+        out = results_dir(env) / f"{method}-s{seed}-ep{budget}.json"
         if out.exists():
             continue
-        cfg = make_config(ENV, method, ["planner.precision=auto", *overrides], episodes=budget, seed=seed,
+        cfg = make_config(env, method, ["planner.precision=auto", *overrides], episodes=budget, seed=seed,
                           wandb="disabled", task="reach-close" if method == "hucrl" else None)
         run_dir = root / f"{method}-s{seed}"
         t0 = time.time()
@@ -53,7 +58,7 @@ def run_one(method: str, seed: int, budgets: list[int], any_episodes: int, root:
         anyres = evaluate_run(run_dir, tasks=["reach-any"], episodes=any_episodes, seed=0, progress=False)
         tasks = {**fixed["tasks"], **anyres["tasks"]}
         result = {
-            "env": ENV, "method": method, "seed": seed, "episodes": budget, "transitions": history[-1]["transitions"],
+            "env": env, "method": method, "seed": seed, "episodes": budget, "transitions": history[-1]["transitions"],
             "history": history, "explore_seconds_this_call": t_explore, "eval_seconds": time.time() - t0,
             "accuracy": {k: v for k, v in fixed.items() if k.startswith("heldout_nmse")},
             "tasks": {name: {"returns": r["returns"], "mean_return": r["mean_return"],
@@ -61,15 +66,15 @@ def run_one(method: str, seed: int, budgets: list[int], any_episodes: int, root:
                              "min_error_mm": [m["min_error_mm"] for m in r["metrics"]]} for name, r in tasks.items()},
             "config": cfg.to_dict(),
         }
-        RESULTS.mkdir(parents=True, exist_ok=True)
+        out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(result, indent=1, default=float))
         print(f"{out.name}: nmse {result['accuracy']['heldout_nmse']:.4g}, "
               + ", ".join(f"{k} {v['mean_return']:.1f} ({np.mean(v['final_error_mm']):.0f} mm)"
                           for k, v in result["tasks"].items()), flush=True)
 
 
-def table() -> str:
-    rows = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("*.json"))]
+def table(env: str) -> str:
+    rows = [json.loads(p.read_text()) for p in sorted(results_dir(env).glob("*.json"))]
     if not rows:
         return "no finished result yet"
     from torchrl_softae.pipeline.methods import METHOD_NAMES
@@ -77,7 +82,7 @@ def table() -> str:
     lines = []
     for budget in sorted({r["episodes"] for r in rows}):
         group = [r for r in rows if r["episodes"] == budget]
-        lines += [f"\n{ENV}, {budget} exploration episodes = {group[0]['transitions']} transitions per run "
+        lines += [f"\n{env}, {budget} exploration episodes = {group[0]['transitions']} transitions per run "
                   "(paper preset, iCEM H=10, mean +- std over seeds)\n",
                   "| method | seeds | held-out nMSE | s'=s | predict mean | coverage | (i) return | (i) final error [mm] | "
                   "(ii) return | (ii) final error [mm] | reach-any return | reach-any final error [mm] | paper nMSE |",
@@ -96,12 +101,12 @@ def table() -> str:
             for t in TASKS:
                 cells += [f([r["tasks"][t]["mean_return"] for r in rs], "{:.1f}"),
                           f([np.mean(r["tasks"][t]["final_error_mm"]) for r in rs], "{:.0f}")]
-            cells.append(str(PAPER.get(m, "-")))
+            cells.append(str(PAPER.get(m, "-")) if env == "SoftArm-v1" else "-")  # the paper's numbers: the 58D arm
             lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def plot() -> Path | None:
+def plot(env: str) -> Path | None:
     """Held-out nMSE vs exploration episode (every seed, and the mean where 2+ seeds have the
     episode) and zero-shot returns vs budget (mean +- std over seeds), per method."""
     import matplotlib
@@ -111,7 +116,7 @@ def plot() -> Path | None:
 
     from torchrl_softae.pipeline.methods import METHOD_NAMES
 
-    rows = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("*.json"))]
+    rows = [json.loads(p.read_text()) for p in sorted(results_dir(env).glob("*.json"))]
     if not rows:
         return None
     methods = [m for m in METHOD_NAMES if any(r["method"] == m for r in rows)]
@@ -142,13 +147,13 @@ def plot() -> Path | None:
     identity = rows[0]["accuracy"]["heldout_nmse_identity"]
     axes[0].axhline(identity, color="k", ls="--", lw=1, label=f"s' = s ({identity:.3f})")
     axes[0].set_yscale("log")
-    axes[0].set_title(f"{ENV}: held-out normalized MSE")
+    axes[0].set_title(f"{env}: held-out normalized MSE")
     axes[0].set_xlabel("exploration episode (200 transitions each)")
     axes[0].set_ylabel("normalized MSE (reference-set std)")
     axes[0].legend(fontsize=7)
     for j, t in enumerate(TASKS):
         ax = axes[j + 1]
-        ax.set_title(f"{ENV}: zero-shot {t}")
+        ax.set_title(f"{env}: zero-shot {t}")
         ax.set_xlabel("exploration episodes")
         ax.set_ylabel("return (sum of g(d), max 200)")
         ax.set_xticks(sorted({r["episodes"] for r in rows}))
@@ -157,7 +162,7 @@ def plot() -> Path | None:
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.tight_layout()
-    path = RESULTS.parent / "plots" / f"{ENV}_replication_curves.png"
+    path = results_dir(env).parent / "plots" / f"{env}_replication_curves.png"
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -169,25 +174,27 @@ def main():
 
     plain_output()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--env", default="SoftArm-v1", choices=sorted(SETUPS))
     p.add_argument("--runs", nargs="*", default=[], metavar="METHOD:SEED", help="run these, one after another")
     p.add_argument("--budgets", type=int, nargs="+", default=[10, 25, 50])
     p.add_argument("--any-episodes", type=int, default=3)
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--root", default=str(Path(__file__).parent / "results" / "runs" / "arm_v1"))
+    p.add_argument("--root", default=None, help="run dirs (default benchmarks/results/runs/arm_v1 or arm136_v1)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--table", action="store_true", help="print the table of finished results and exit")
     p.add_argument("--plot", action="store_true", help="draw nMSE vs episode and returns vs budget, and exit")
     args = p.parse_args()
     if args.table or args.plot:
-        print(table())
+        print(table(args.env))
         if args.plot:
-            print(plot())
+            print(plot(args.env))
         return
     torch.set_num_threads(args.threads)
+    root = Path(args.root) if args.root else Path(__file__).parent / "results" / "runs" / SETUPS[args.env]
     for item in args.runs:
         method, seed = item.split(":")
-        run_one(method, int(seed), args.budgets, args.any_episodes, Path(args.root), args.overrides)
-    print(table())
+        run_one(args.env, method, int(seed), args.budgets, args.any_episodes, root, args.overrides)
+    print(table(args.env))
 
 
 if __name__ == "__main__":
