@@ -13,7 +13,7 @@ from torchrl_softae.pipeline.builders import build_planner_policy, build_world_m
 from torchrl_softae.pipeline.catalog import get_env_entry
 from torchrl_softae.pipeline.config import ConfigError, ExploreConfig, apply_overrides
 from torchrl_softae.pipeline.data import ModelAccuracy, episode_seed, make_real_env, seed_everything
-from torchrl_softae.pipeline.runs import CheckpointError, RunDir
+from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir
 from torchrl_softae.tasks.base import Task, TaskReward
 
 __all__ = ["load_run", "zero_shot", "task_policy", "reference_returns", "evaluate_run", "eval_file_name",
@@ -163,7 +163,6 @@ def _task_rollouts_batched(env: str, task: Task, episodes: int, seed: int, polic
 
 #: the model-free references a zero-shot controller is put next to, and their table labels
 REFERENCE_POLICIES = {"random": "random actions, no model", "zero": "no control (zero action)"}
-REFERENCES_FILE = "references.json"  # RUN/eval/references.json (write_references)
 
 
 @torch.no_grad()

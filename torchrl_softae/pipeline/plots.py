@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from torchrl_softae.pipeline.methods import label_order, row_labels
-from torchrl_softae.pipeline.runs import CheckpointError, RunDir, run_dirs_below
+from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, run_dirs_below
 
 __all__ = ["plot_run", "plot_comparison", "plot_path"]
 
@@ -82,7 +82,7 @@ def _evals(run: RunDir) -> dict[str, dict]:
 
 def _references(run: RunDir) -> dict[str, dict]:
     """The model-free references' returns of a run's evaluation (``{label: {task: [...]}}``)."""
-    path = run.path / "eval" / "references.json"
+    path = run.path / "eval" / REFERENCES_FILE
     return json.loads(path.read_text())["returns"] if path.exists() else {}
 
 
@@ -166,7 +166,7 @@ def _load_ok(runs: list[RunDir], warn) -> list[tuple[RunDir, dict]]:
     return ok
 
 
-def _seed_bars(ax, labels: list[str], values: list[list[float]], color: str) -> None:
+def _seed_bars(ax, labels: list[str], values: list[list[float]], color) -> None:
     """Bars of the mean over seeds with min-max whiskers (never outside what a seed reached, e.g.
     below 0 for a fraction) and every seed as a dot."""
     means = [np.mean(v) if v else np.nan for v in values]
@@ -212,12 +212,8 @@ def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
 
         fig, ax = plt.subplots(figsize=(1.3 * len(methods) + 2.5, 3.8))
         vals = [np.array([s["history"][-1]["heldout_nmse"] for _, s in by_method[m]]) for m in methods]
-        means = np.array([v.mean() for v in vals])
         # min-max whiskers: never below a log axis, unlike mean - std
-        err = np.array([[m - v.min() for m, v in zip(means, vals)], [v.max() - m for m, v in zip(means, vals)]])
-        ax.bar(methods, means, yerr=err, capsize=4, color=[f"C{i}" for i in range(len(methods))])
-        for i, v in enumerate(vals):
-            ax.plot(np.full(len(v), i), v, "k.", ms=4)
+        _seed_bars(ax, methods, [list(v) for v in vals], [f"C{i}" for i in range(len(methods))])
         ax.set_yscale("log")
         allv = np.concatenate(vals)
         ax.set_ylim(allv.min() / 3, allv.max() * 3)  # a decade of room: bar heights stay comparable
@@ -231,11 +227,11 @@ def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
             rows = 2 if any(metric_of.values()) else 1
             fig, axes = plt.subplots(rows, len(tasks), figsize=(max(3.4 * len(tasks) + 1, 6.5), 3.2 * rows),
                                      squeeze=False)  # wide enough for the title
+            refs = next((refs for m in methods for r, _ in by_method[m] if (refs := _references(r))), {})
             for j, task in enumerate(tasks):
                 per_method = {m: [_evals(r)[task] for r, _ in by_method[m] if task in _evals(r)] for m in methods}
                 ret = [[np.mean(e["returns"]) for e in per_method[m]] for m in methods]
                 _seed_bars(axes[0][j], methods, ret, "C2")
-                refs = next((_references(r) for m in methods for r, _ in by_method[m] if _references(r)), {})
                 for k, (label, per_task) in enumerate(refs.items()):  # the same episodes without a model
                     if per_task.get(task.split("@")[0]):
                         axes[0][j].axhline(np.mean(per_task[task.split("@")[0]]), color="k", lw=1,

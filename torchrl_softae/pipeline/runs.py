@@ -30,7 +30,7 @@ import torch
 from torchrl.data import LazyMemmapStorage, ReplayBuffer
 
 __all__ = ["CheckpointError", "RunDir", "atomic_write_text", "atomic_torch_save", "run_dirs_below", "POLICIES_DIR",
-           "exit_once_after"]
+           "exit_once_after", "REFERENCES_FILE"]
 
 CHECKPOINT_FORMAT = 1
 
@@ -57,6 +57,8 @@ def atomic_torch_save(obj, path: Path) -> None:
 
 #: inside a run dir: the task policies trained on its model (``softae policy``), not runs themselves
 POLICIES_DIR = "policies"
+#: the model-free references of an evaluation, ``RUN/eval/references.json`` (evaluate.write_references)
+REFERENCES_FILE = "references.json"
 
 
 def run_dirs_below(folder: str | os.PathLike, marker: str = "config.json") -> list[Path]:
