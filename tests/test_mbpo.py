@@ -240,3 +240,21 @@ def test_reports_and_plots_do_not_take_a_runs_task_policies_for_runs(tmp_path, c
     assert "skipping" not in out.err and "policies" not in out.out, out
     report = json.loads((tmp_path / "runs" / "report.json").read_text())
     assert [r["seeds"] for t in report["tables"] for r in t["rows"]] == [[0]] and not report["unfinished"]
+
+
+def test_softae_policy_builds_the_real_env_once_for_specs_and_once_to_evaluate(tmp_path, monkeypatch):
+    """Loading the run and building the learner read the specs from one instance (on SoPrA each
+    instance is a valve/mocap session); the evaluation episodes use one more."""
+    from torchrl_softae.pipeline.catalog import get_env_entry
+    from torchrl_softae.pipeline.policy import train_policy
+
+    run = tmp_path / "random"
+    assert main(["explore", *TINY, "--method", "random", "--episodes", "1", "--run-dir", str(run)]) == 0
+    entry = get_env_entry("Pendulum-v1")
+    built = []
+    make = entry.make
+    monkeypatch.setattr(entry, "make", lambda: built.append(1) or make())
+    monkeypatch.setattr(entry, "_specs", None)
+    train_policy(run, "swingup", updates=2, episodes=1, progress=False, echo=None,
+                 overrides=["policy.updates_per_rollout=2"])
+    assert len(built) == 2

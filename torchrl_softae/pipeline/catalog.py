@@ -48,6 +48,19 @@ class EnvEntry:
     version: str = "1"  # bump when the physics changes: keys the held-out cache
     accuracy_groups: dict = field(default_factory=dict)  # extra normalized-MSE reports, name -> dims
     reference: Callable[[int, int], TensorDictBase] | None = None  # extra broad transitions for the metric's scale
+    _specs: tuple | None = field(default=None, init=False, repr=False, compare=False)
+
+    def specs(self) -> tuple:
+        """``(observation_spec, action_spec)`` of the env, read from one instance built (and closed)
+        at the first call and kept for the process: loading a run and building its policy learner
+        need the specs, not a second connection to the robot (for SoPrA, a valve/mocap session)."""
+        if self._specs is None:
+            env = self.make()
+            try:
+                self._specs = (env.observation_spec.clone(), env.action_spec.clone())
+            finally:
+                env.close()
+        return self._specs
 
     def project(self, data) -> torch.Tensor:
         """``data`` (a tensordict of transitions) -> ``(N, 2)`` coverage coordinates."""

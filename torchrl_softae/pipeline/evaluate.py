@@ -27,10 +27,8 @@ def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, di
         raise CheckpointError(f"{run.path} holds no checkpoint: run `softae explore --run-dir {run.path}` first")
     state = run.load()
     cfg = ExploreConfig.from_dict(state["config"])
-    entry = get_env_entry(cfg.env)
-    env = entry.make()
-    d_s, d_a = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
-    env.close()
+    observation_spec, action_spec = get_env_entry(cfg.env).specs()
+    d_s, d_a = observation_spec["observation"].shape[-1], action_spec.shape[-1]
     model = build_world_model(cfg.model, d_s, d_a)
     try:
         model.load_state_dict(state["model"])

@@ -148,10 +148,7 @@ def train_policy(
                           "expected episodes >= 1, updates >= 0, checkpoint-every >= 1")
     run = RunDir(run_dir)
     real = stored_transitions(run, state)
-    env = entry.make()
-    action_spec = env.action_spec
-    env.close()
-    learner = build_policy_learner(cfg.policy, model, action_spec, entry.tasks[task], propagation, cfg.beta, seed)
+    learner = build_policy_learner(cfg.policy, model, entry.specs()[1], entry.tasks[task], propagation, cfg.beta, seed)
     own = (get_method(cfg.method).trains_policy and cfg.task == task and get_method(cfg.method).propagation == propagation
            and "policy" in state)
     if own:
