@@ -128,6 +128,12 @@ def test_local_processes_sweep_resumes_a_killed_trial(tmp_path, capsys, monkeypa
     data = json.loads((root / "report.json").read_text())
     assert [r["method"] for r in data["tables"][0]["rows"]] == ["random", "softae"]
     assert data["unfinished"][0]["episodes_done"] == 1
+    # the report keeps every run's history and evaluations (what survives the run dirs)
+    archived = {r["run_dir"]: r for r in data["runs"]}
+    assert len(archived["Pendulum-v1/random-s7"]["history"]) == 1
+    finished = [r for r in data["runs"] if r["episodes_done"] == 3]
+    assert len(finished) == 4 and all([h["episode"] for h in r["history"]] == [0, 1, 2] for r in finished)
+    assert all(r["evals"]["swingup@horizon=2"]["returns"] for r in finished)
 
 
 def test_row_labels_keep_apart_runs_of_a_method_that_differ_in_more_than_the_seed():

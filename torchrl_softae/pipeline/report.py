@@ -9,7 +9,8 @@ policy``, ``RUN/policies/``), plus the model-free reference rows where a run dir
 true}``). Runs that
 have not reached their configured number of episodes are listed as unfinished, never averaged.
 Markdown and JSON go to ``ROOT/report.md`` and ``ROOT/report.json``; comparison plots to
-``ROOT/plots/``.
+``ROOT/plots/``. ``report.json`` also keeps every run's config, per-episode history and
+evaluations (``runs``), so a committed report outlives the run dirs it was made from.
 """
 from __future__ import annotations
 
@@ -63,7 +64,8 @@ def collect(root: str | Path, warn=None) -> list[dict]:
         out.append({"run_dir": str(run.path), "config": cfg, "env": cfg.get("env"), "method": cfg.get("method"),
                     "seed": cfg.get("seed"), "episodes_target": cfg.get("episodes"), "episodes_done": len(history),
                     "transitions": history[-1]["transitions"] if history else 0,
-                    "last": history[-1] if history else {}, "evals": evals, "policies": policies})
+                    "last": history[-1] if history else {}, "history": history, "evals": evals,
+                    "policies": policies})
     return out
 
 
@@ -147,9 +149,14 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
     text = "\n".join(md)
     md_path, json_path = root / "report.md", root / "report.json"
     md_path.write_text(text)
-    json_path.write_text(json.dumps({"tables": tables, "unfinished": [
-        {k: r[k] for k in ("run_dir", "method", "seed", "episodes_done", "episodes_target")} for r in unfinished]},
-        indent=1, default=float))
+    summary = ("run_dir", "method", "seed", "episodes_done", "episodes_target")
+    # every run's history and evaluations too: a committed report keeps what each run measured
+    # when its run dir (checkpoints, replay dumps) is gone
+    archive = [{**{k: r[k] for k in summary}, "run_dir": str(Path(r["run_dir"]).relative_to(root)),
+                "env": r["env"], "config": r["config"], "history": r["history"], "evals": r["evals"],
+                "policies": r["policies"]} for r in runs]
+    json_path.write_text(json.dumps({"tables": tables, "unfinished": [{k: r[k] for k in summary} for r in unfinished],
+                                     "runs": archive}, indent=1, default=float))
     written = []
     if plots:
         from torchrl_softae.pipeline.plots import plot_comparison
