@@ -57,6 +57,15 @@ def _model(run_dir):
     return torch.load(Path(run_dir) / "checkpoint.pt", weights_only=False)["model"]
 
 
+def _check_progress(out):
+    """One line per explored episode and per evaluation of every trial, as they happen."""
+    for name in ("random-s0", "random-s1", "softae-b2-s0", "softae-b2-s1"):
+        lines = [ln for ln in out.splitlines() if ln.startswith(f"trial Pendulum-v1/{name}: ")]
+        assert any("episode 1/3, held-out normalized MSE" in ln for ln in lines), lines
+        assert any("episode 3/3, held-out normalized MSE" in ln for ln in lines), lines
+        assert any("evaluated zero-shot (returns: swingup " in ln for ln in lines), lines
+
+
 def _check_sweep(tmp_path, root, capsys):
     runs = sorted(p.parent for p in Path(root).rglob("checkpoint.pt"))
     assert [p.name for p in runs] == ["random-s0", "random-s1", "softae-b2-s0", "softae-b2-s1"]
@@ -93,6 +102,7 @@ def test_ray_sweep_runs_trials_concurrently_and_resumes_a_killed_one(tmp_path, c
     assert main(["sweep", str(f), "--root", str(root), "--cpus-per-trial", "1"]) == 0
     out = capsys.readouterr().out
     assert "engine: Ray" in out and "embedded, 2 CPUs" in out
+    _check_progress(out)
     monkeypatch.delenv("SOFTAE_EXIT_AFTER_EPISODE")
     _check_sweep(tmp_path, root, capsys)
     assert not (tmp_path / "home" / ".ray").exists() or not any((tmp_path / "home" / ".ray").rglob("*token*"))
@@ -105,6 +115,7 @@ def test_local_processes_sweep_resumes_a_killed_trial(tmp_path, capsys, monkeypa
     assert main(["sweep", str(f), "--root", str(root), "--jobs", "2"]) == 0
     out = capsys.readouterr().out
     assert "engine: local processes (2 at a time" in out and "exited with code 17" in out
+    _check_progress(out)
     monkeypatch.delenv("SOFTAE_EXIT_AFTER_EPISODE")
     _check_sweep(tmp_path, root, capsys)
 

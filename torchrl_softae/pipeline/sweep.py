@@ -41,7 +41,9 @@ from pathlib import Path
 from torchrl_softae.pipeline.config import ConfigError
 from torchrl_softae.pipeline.methods import get_method
 
-__all__ = ["Trial", "load_sweep", "expand", "trial_status", "run_trial", "run_local", "run_ray"]
+__all__ = ["Trial", "load_sweep", "expand", "trial_status", "run_trial", "run_local", "run_ray", "progress_line"]
+
+PROGRESS_PREFIX = "@softae-progress "  # a local trial's result rows on its stdout, for the driver
 
 
 @dataclass
@@ -282,12 +284,42 @@ def run_trial(trial: Trial, threads: int, on_episode=None) -> dict:
 
 
 # ---------------------------------------------------------------------------- engines
+def progress_line(name: str, row: dict, episodes: int) -> str:
+    """The sweep's one line per trial event: an explored episode, the evaluation, the task policies."""
+    if row.get("policies_trained"):
+        what = ", ".join(f"{k.split('/', 1)[1]} {v:.3g}" for k, v in row.items() if k.startswith("policy_return/"))
+        return f"trial {name}: task policies trained (real returns: {what})"
+    if row.get("evaluated"):
+        what = ", ".join(f"{k.split('/', 1)[1]} {v:.3g}" for k, v in row.items() if k.startswith("return/"))
+        return f"trial {name}: evaluated zero-shot (returns: {what})"
+    return (f"trial {name}: episode {int(row['episode']) + 1}/{episodes}, held-out normalized MSE "
+            f"{row.get('heldout_nmse', float('nan')):.4g}, coverage {row.get('coverage', float('nan')):.3f}")
+
+
 def run_local(trials: list[Trial], jobs: int, threads: int, max_failures: int, echo=print) -> dict:
     """Each trial as a ``softae`` subprocess, ``jobs`` at a time; a failed one is retried
-    ``max_failures`` times (it resumes from its run dir). Returns {trial name: status}."""
+    ``max_failures`` times (it resumes from its run dir). Each trial's episodes are echoed as they
+    finish (:func:`progress_line`). Returns {trial name: status}."""
+    import tempfile
+
     status: dict[str, str] = {}
     lock = threading.Lock()
     pending = list(trials)
+
+    def attempt(trial: Trial) -> tuple[int, str]:
+        cmd = [sys.executable, "-m", "torchrl_softae.pipeline.sweep", "--trial", json.dumps(trial.to_json()),
+               "--threads", str(threads)]
+        # stderr to a file, not a pipe: nothing blocks while stdout is read line by line
+        with tempfile.TemporaryFile("w+") as err:
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
+            for line in proc.stdout:
+                if line.startswith(PROGRESS_PREFIX):
+                    with lock:
+                        echo(progress_line(trial.name, json.loads(line[len(PROGRESS_PREFIX):]), trial.episodes))
+            rc = proc.wait()
+            err.seek(0)
+            last = [ln.strip() for ln in err.read().splitlines() if ln.strip()]
+        return rc, last[-1] if last else ""
 
     def worker():
         while True:
@@ -295,15 +327,14 @@ def run_local(trials: list[Trial], jobs: int, threads: int, max_failures: int, e
                 if not pending:
                     return
                 trial = pending.pop(0)
-            for attempt in range(max_failures + 1):
-                cmd = [sys.executable, "-m", "torchrl_softae.pipeline.sweep", "--trial", json.dumps(trial.to_json()),
-                       "--threads", str(threads)]
-                rc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True).returncode
+            for n in range(max_failures + 1):
+                rc, last_error = attempt(trial)
                 if rc == 0:
                     break
                 with lock:
-                    echo(f"trial {trial.name} exited with code {rc} (attempt {attempt + 1}); "
-                         + ("retrying: it resumes from its run dir" if attempt < max_failures else "giving up"))
+                    echo(f"trial {trial.name} exited with code {rc} (attempt {n + 1})"
+                         + (f": {last_error}" if last_error else "") + "; "
+                         + ("retrying: it resumes from its run dir" if n < max_failures else "giving up"))
             with lock:
                 status[trial.name] = trial_status(trial)
                 echo(f"trial {trial.name}: {status[trial.name]}")
@@ -347,13 +378,21 @@ def run_ray(trials: list[Trial], cpus_per_trial: int, max_failures: int, address
     echo(f"engine: Ray {ray.__version__} ({'embedded, ' + str(int(ray.cluster_resources().get('CPU', 0))) + ' CPUs' if address is None else 'cluster at ' + address}), "
          f"{cpus_per_trial} CPU(s) and torch thread(s) per trial; started in {time.perf_counter() - t0:.1f} s")
     storage_path = str(Path(storage).resolve()) if storage else str((trials[0].run_dir.parents[1] / ".tune").resolve())
+    class Progress(tune.Callback):
+        """The driver's one line per trial result (the trials themselves run quietly)."""
+
+        def on_trial_result(self, iteration, trials, trial, result, **info):
+            t = trial.config["trial"]
+            echo(progress_line(t["name"], result, t["episodes"]))
+
     tuner = tune.Tuner(
         tune.with_resources(_ray_trainable, {"cpu": cpus_per_trial}),
         param_space={"trial": tune.grid_search([{**t.to_json(), "threads": cpus_per_trial} for t in trials])},
         tune_config=tune.TuneConfig(trial_name_creator=lambda tr: tr.config["trial"]["name"].replace("/", "_"),
                                     trial_dirname_creator=lambda tr: tr.config["trial"]["name"].replace("/", "_")),
         run_config=tune.RunConfig(name=f"softae-sweep-{int(time.time())}", storage_path=storage_path,
-                                  failure_config=tune.FailureConfig(max_failures=max_failures), verbose=0),
+                                  failure_config=tune.FailureConfig(max_failures=max_failures), verbose=0,
+                                  callbacks=[Progress()]),
     )
     tuner.fit()
     if address is None:
@@ -369,7 +408,11 @@ def main(argv=None) -> int:
     p.add_argument("--trial", required=True)
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args(argv)
-    run_trial(Trial.from_json(json.loads(args.trial)), args.threads)
+
+    def report(row):
+        print(PROGRESS_PREFIX + json.dumps({k: v for k, v in row.items() if isinstance(v, (int, float))}), flush=True)
+
+    run_trial(Trial.from_json(json.loads(args.trial)), args.threads, on_episode=report)
     return 0
 
 
