@@ -134,6 +134,9 @@ def test_local_processes_sweep_resumes_a_killed_trial(tmp_path, capsys, monkeypa
     assert "## Pendulum-v1: 3 episodes = 60 transitions per run" in out
     assert "| random | 2 |" in out and "| softae | 2 |" in out and "swingup@horizon=2 return" in out
     assert "random seed 7, 1 of 3 episodes" in out
+    # its plots show the finished runs the tables average, not the unfinished one as a budget of its own
+    plots = sorted(p.name for p in (root / "plots").glob("*.png"))
+    assert "mse_bars.png" in plots and not any(p.startswith("Pendulum-v1_") for p in plots), plots
     # the model-free references on the same evaluation episode, one row each
     assert "| *random actions, no model* | - | - | - |" in out and "| *no control (zero action)* |" in out
     data = json.loads((root / "report.json").read_text())

@@ -176,15 +176,21 @@ def _seed_bars(ax, labels: list[str], values: list[list[float]], color) -> None:
         ax.plot([i] * len(v), v, ".", color="k", ms=4)
 
 
-def plot_comparison(folder: str | Path, warn=None) -> list[Path]:
+def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> list[Path]:
     """Per env and budget: bars of held-out normalized MSE and zero-shot returns per method over the
-    seeds, and one coverage heatmap per method (all its seeds' data), below ``folder/plots``."""
+    seeds, and one coverage heatmap per method (all its seeds' data), below ``folder/plots``.
+    ``only``: plot just these run dirs (``softae report`` passes its finished runs, so its plots
+    show what its tables average)."""
     from torchrl_softae.pipeline.catalog import get_env_entry
 
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
     plt = _plt()
     folder = Path(folder)
-    loaded = _load_ok(_runs_below(folder), warn)
+    runs = _runs_below(folder)
+    if only is not None:
+        keep = {Path(p).resolve() for p in only}
+        runs = [r for r in runs if r.path.resolve() in keep]
+    loaded = _load_ok(runs, warn)
     if not loaded:
         raise FileNotFoundError(f"no readable run (checkpoint.pt) below {folder}")
     budgets: dict[tuple, list] = defaultdict(list)

@@ -161,5 +161,6 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
     if plots:
         from torchrl_softae.pipeline.plots import plot_comparison
 
-        written = plot_comparison(root, warn)
+        # the runs the tables average; unfinished ones would be a budget of their own
+        written = plot_comparison(root, warn, only=[r["run_dir"] for r in finished]) if finished else []
     return text, json_path, md_path, written
