@@ -1,11 +1,12 @@
-"""Random vs SoftAE on the MuJoCo robots, zero-shot tasks (iii)-(viii).
+"""Random vs SoftAE on the fish, zero-shot tasks (iii)-(vi). (The leg is the sweep
+``sweeps/leg.yaml`` + ``softae report``; the fish follow as ``sweeps/fish*.yaml``.)
 
-    python benchmarks/exploration_mujoco.py                          # all three envs, seeds 0 and 1
-    python benchmarks/exploration_mujoco.py --envs MSKLeg-v0 --episodes 4
+    python benchmarks/exploration_mujoco.py                          # both fish envs, seeds 0 and 1
+    python benchmarks/exploration_mujoco.py --envs SoftFish-v0 --episodes 4
 
-Each method explores for a budget of episodes (fish 200 steps, leg 500 steps) chosen so that
-SoftAE's exploration over the three envs takes about an hour on 2 cores (fish 100 episodes,
-about 10 s each; leg 60 episodes, about 24 s each); ``--episodes`` sets one budget for all.
+Each method explores for a budget of episodes of 200 steps chosen so that SoftAE's exploration
+takes about an hour on 2 cores (100 episodes, about 10 s each); ``--episodes`` sets one budget
+for all.
 ``quick`` preset with
 iCEM H=20 -- the paper's H=100 for (v)-(viii) is out of reach on 2 CPU cores), then solves each
 task zero-shot. The paper reports Random failing on (v)-(viii) because random actions rarely
@@ -15,9 +16,8 @@ import argparse
 
 from _exploration import RESULTS, run
 
-TASKS = {"SoftFish-v0": ["forward", "backward"], "SoftFishTarget-v0": ["to-target", "from-target"],
-         "MSKLeg-v0": ["ccw", "cw"]}
-BUDGET = {"SoftFish-v0": 100, "SoftFishTarget-v0": 100, "MSKLeg-v0": 60}  # episodes
+TASKS = {"SoftFish-v0": ["forward", "backward"], "SoftFishTarget-v0": ["to-target", "from-target"]}
+BUDGET = {"SoftFish-v0": 100, "SoftFishTarget-v0": 100}  # episodes
 
 if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
