@@ -284,6 +284,11 @@ def run_trial(trial: Trial, threads: int, on_episode=None) -> dict:
 
 
 # ---------------------------------------------------------------------------- engines
+def _result(row: dict) -> dict:
+    """What a trial reports per event (to Tune, or to the local driver): the row's finite numbers."""
+    return {k: v for k, v in row.items() if isinstance(v, (int, float)) and v == v}
+
+
 def progress_line(name: str, row: dict, episodes: int) -> str:
     """The sweep's one line per trial event: an explored episode, the evaluation, the task policies."""
     if row.get("policies_trained"):
@@ -354,10 +359,7 @@ def _ray_trainable(config: dict) -> None:
     t = config["trial"]
     trial = Trial.from_json(t)
 
-    def report(row):
-        tune.report({k: v for k, v in row.items() if isinstance(v, (int, float)) and v == v})
-
-    run_trial(trial, t["threads"], on_episode=report)
+    run_trial(trial, t["threads"], on_episode=lambda row: tune.report(_result(row)))
 
 
 def run_ray(trials: list[Trial], cpus_per_trial: int, max_failures: int, address: str | None = None,
@@ -378,6 +380,7 @@ def run_ray(trials: list[Trial], cpus_per_trial: int, max_failures: int, address
     echo(f"engine: Ray {ray.__version__} ({'embedded, ' + str(int(ray.cluster_resources().get('CPU', 0))) + ' CPUs' if address is None else 'cluster at ' + address}), "
          f"{cpus_per_trial} CPU(s) and torch thread(s) per trial; started in {time.perf_counter() - t0:.1f} s")
     storage_path = str(Path(storage).resolve()) if storage else str((trials[0].run_dir.parents[1] / ".tune").resolve())
+
     class Progress(tune.Callback):
         """The driver's one line per trial result (the trials themselves run quietly)."""
 
@@ -409,10 +412,8 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args(argv)
 
-    def report(row):
-        print(PROGRESS_PREFIX + json.dumps({k: v for k, v in row.items() if isinstance(v, (int, float))}), flush=True)
-
-    run_trial(Trial.from_json(json.loads(args.trial)), args.threads, on_episode=report)
+    run_trial(Trial.from_json(json.loads(args.trial)), args.threads,
+              on_episode=lambda row: print(PROGRESS_PREFIX + json.dumps(_result(row)), flush=True))
     return 0
 
 
