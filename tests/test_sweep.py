@@ -165,6 +165,12 @@ def test_row_labels_keep_apart_runs_of_a_method_that_differ_in_more_than_the_see
                       "mean-ae planner.horizon=5", "mean-ae planner.horizon=20"]
     assert label_order(labels) == ["random", "mean-ae planner.horizon=20", "mean-ae planner.horizon=5",
                                    "softae beta=1", "softae beta=2"]
+    # a run written before a config field existed ran at its default: it is not set apart by it
+    older, newer = cfg("softae", 0), cfg("softae", 1)
+    older["model"], newer["model"] = {"depth": 4}, {"depth": 4, "symlog": False}
+    assert row_labels([older, newer]) == ["softae", "softae"]
+    newer["model"]["symlog"] = True
+    assert row_labels([older, newer]) == ["softae model.symlog=False", "softae model.symlog=True"]
 
 
 def test_report_and_plots_never_average_runs_of_different_beta(tmp_path, capsys):

@@ -17,6 +17,7 @@ __all__ = [
     "ConfigError",
     "make_config",
     "apply_overrides",
+    "flat_config",
 ]
 
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS
@@ -190,6 +191,20 @@ class ExploreConfig:
         if not 0 <= self.train.val_fraction < 1:
             raise ConfigError(f"train.val_fraction={self.train.val_fraction!r}; expected in [0, 1)")
         return self
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        out.update(_flatten(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def flat_config(config: dict) -> dict:
+    """A run's stored config as flat ``section.key`` items, with every field added since it was
+    written at its default: what the run ran with. Runs from before a new field (e.g. ``model.symlog``)
+    compare equal to new runs at its default, on resume and in tables."""
+    return {**_flatten(ExploreConfig().to_dict()), **_flatten(config)}
 
 
 def _check_types(cfg: Any, prefix: str = "") -> None:

@@ -23,7 +23,7 @@ from torchrl_softae.envs.guard import EnvFaultWarning
 from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 from torchrl_softae.pipeline.builders import build_exploration_policy, build_world_model
 from torchrl_softae.pipeline.catalog import get_env_entry
-from torchrl_softae.pipeline.config import ConfigError, ExploreConfig
+from torchrl_softae.pipeline.config import ConfigError, ExploreConfig, flat_config
 from torchrl_softae.pipeline.data import (ModelAccuracy, coverage, episode_seed, heldout_set, make_real_env,
                                           normalized_mse, seed_everything)
 from torchrl_softae.pipeline.evaluate import zero_shot
@@ -37,24 +37,8 @@ __all__ = ["Explorer", "explore", "make_real_env", "coverage", "heldout_set", "n
 RESUMABLE_KEYS = {"episodes", "wandb", "eval_every", "eval_episodes"}
 
 
-def _flatten(d: dict, prefix="") -> dict:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flatten(v, prefix + k + "."))
-        else:
-            out[prefix + k] = v
-    return out
-
-
-def _with_defaults(config: dict) -> dict:
-    """A stored config, flattened, with fields added since it was written at their defaults (so a
-    run from before a new config field resumes as it was)."""
-    return {**_flatten(ExploreConfig().to_dict()), **_flatten(config)}
-
-
 def _fixed_part(config: dict) -> dict:
-    return {k: v for k, v in _with_defaults(config).items() if not _free_to_change(k, config)}
+    return {k: v for k, v in flat_config(config).items() if not _free_to_change(k, config)}
 
 
 def _free_to_change(key: str, config: dict) -> bool:
@@ -95,7 +79,7 @@ class Explorer:
         stored = self.run.read_config()
         if stored is None:
             return None
-        old, new = _with_defaults(stored.get("config", {})), _flatten(self.cfg.to_dict())
+        old, new = flat_config(stored.get("config", {})), flat_config(self.cfg.to_dict())
         diff = [f"{k}: stored {old.get(k)!r} != requested {new.get(k)!r}"
                 for k in sorted(set(old) | set(new))
                 if not _free_to_change(k, self.cfg.to_dict()) and old.get(k) != new.get(k)]

@@ -81,20 +81,17 @@ def get_method(name: str) -> Method:
 _NOT_IDENTITY = ("seed", "episodes", "wandb")
 
 
-def _flat(config: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in config.items():
-        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
-    return out
-
-
 def row_labels(configs: list[dict]) -> list[str]:
     """Row labels of runs side by side in a table or plot (their run configs in, one label each).
 
     A label is the method's name, plus every setting in which runs of that method differ (beta
     only for a method that uses it), e.g. ``softae beta=1`` and ``softae beta=2``: runs are
-    averaged only with runs that differ in nothing but the seed."""
-    flat = [_flat(c) for c in configs]
+    averaged only with runs that differ in nothing but the seed. Configs are compared as the runs
+    ran (fields added since a run was written at their defaults), so an older run is not set apart
+    by a field it could not store."""
+    from torchrl_softae.pipeline.config import flat_config  # config imports this table
+
+    flat = [flat_config(c) for c in configs]
     differing: dict[str, set] = defaultdict(set)
     by_method = defaultdict(list)
     for f in flat:
