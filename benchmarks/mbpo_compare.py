@@ -32,6 +32,7 @@ import torch
 
 from torchrl_softae.pipeline.arguments import PRESETS
 from torchrl_softae.pipeline.cli import plain_output
+from torchrl_softae.pipeline.plots import method_color
 
 RESULTS = Path(__file__).parent / "results" / "mbpo"
 SETUPS = {  # env -> (task (i), task (ii), preset, overrides)
@@ -145,10 +146,10 @@ def plot(env: str, tag: str = "") -> Path | None:
             mean, std = np.array([np.mean(v) for v in vals]), np.array([np.std(v) for v in vals])
             n = sorted({len(v) for v in vals})
             x = np.array(budgets, dtype=float) + (c - (len(methods) - 1) / 2) * width
-            ax.errorbar(x, mean, yerr=std, marker="o", capsize=3, color=f"C{c}",
+            ax.errorbar(x, mean, yerr=std, marker="o", capsize=3, color=method_color(m),
                         label=f"{LABELS[m]} ({'/'.join(map(str, n))} seeds)")
             for xi, v in zip(x, vals):  # every seed
-                ax.plot([xi] * len(v), v, ".", color=f"C{c}", alpha=0.45, ms=5)
+                ax.plot([xi] * len(v), v, ".", color=method_color(m), alpha=0.45, ms=5)
         ax.set_xticks(all_budgets)
         if len(all_budgets) == 1:
             ax.set_xlim(all_budgets[0] - 0.25 * gap, all_budgets[0] + 0.25 * gap)

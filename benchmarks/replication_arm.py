@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchrl_softae.pipeline.plots import method_color
+
 #: env -> results folder name (and run dirs' folder under results/runs/)
 SETUPS = {"SoftArm-v1": "arm_v1", "SoftArm136-v1": "arm136_v1"}
 
@@ -129,21 +131,21 @@ def plot(env: str) -> Path | None:
                 longest[r["seed"]] = r
         curves = [[h["heldout_nmse"] for h in r["history"]] for r in longest.values()]
         for y in curves:
-            axes[0].plot(range(1, len(y) + 1), y, color=f"C{c}", alpha=0.3, lw=1)
+            axes[0].plot(range(1, len(y) + 1), y, color=method_color(m), alpha=0.3, lw=1)
         n = max(len(y) for y in curves)
         mean = [np.mean([y[k] for y in curves if len(y) > k]) for k in range(n)]
         seeds = [sum(len(y) > k for y in curves) for k in range(n)]
         shown = [k for k in range(n) if seeds[k] >= 2]
-        axes[0].plot([k + 1 for k in shown], [mean[k] for k in shown], color=f"C{c}", lw=2.5,
+        axes[0].plot([k + 1 for k in shown], [mean[k] for k in shown], color=method_color(m), lw=2.5,
                      label=f"{m} ({len(curves)} seeds; thick: mean of 2+)")
         budgets = sorted({r["episodes"] for r in rs})
         for j, t in enumerate(TASKS):
             vals = [[r["tasks"][t]["mean_return"] for r in rs if r["episodes"] == b] for b in budgets]
             x = np.array(budgets, dtype=float) + 0.35 * (c - (len(methods) - 1) / 2)  # dodged: no method hides another
             axes[j + 1].errorbar(x, [np.mean(v) for v in vals], yerr=[np.std(v) for v in vals], marker="o",
-                                 capsize=3, color=f"C{c}", label=f"{m} ({'/'.join(str(len(v)) for v in vals)} seeds)")
+                                 capsize=3, color=method_color(m), label=f"{m} ({'/'.join(str(len(v)) for v in vals)} seeds)")
             for xi, v in zip(x, vals):  # every seed
-                axes[j + 1].plot([xi] * len(v), v, ".", color=f"C{c}", alpha=0.45, ms=4)
+                axes[j + 1].plot([xi] * len(v), v, ".", color=method_color(m), alpha=0.45, ms=4)
     identity = rows[0]["accuracy"]["heldout_nmse_identity"]
     axes[0].axhline(identity, color="k", ls="--", lw=1, label=f"s' = s ({identity:.3f})")
     axes[0].set_yscale("log")

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchrl_softae.pipeline.methods import label_order, row_labels
+from torchrl_softae.pipeline.methods import METHOD_NAMES, label_order, row_labels
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, run_dirs_below
 
 __all__ = ["plot_run", "plot_comparison", "plot_path"]
@@ -175,6 +175,13 @@ def _load_ok(runs: list[RunDir], warn) -> list[tuple[RunDir, dict]]:
     return ok
 
 
+def method_color(label: str) -> str:
+    """The colour of a method (a row label's first word) in every figure: its place in the method
+    table, so a method keeps its colour whichever others stand beside it."""
+    name = label.split(" ")[0]
+    return f"C{METHOD_NAMES.index(name)}" if name in METHOD_NAMES else "C7"
+
+
 def _seed_bars(ax, labels: list[str], values: list[list[float]], color) -> None:
     """Bars of the mean over seeds with min-max whiskers (never outside what a seed reached, e.g.
     below 0 for a fraction) and every seed as a dot."""
@@ -228,7 +235,7 @@ def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> 
         fig, ax = plt.subplots(figsize=(1.3 * len(methods) + 2.5, 3.8))
         vals = [np.array([s["history"][-1]["heldout_nmse"] for _, s in by_method[m]]) for m in methods]
         # min-max whiskers: never below a log axis, unlike mean - std
-        _seed_bars(ax, methods, [list(v) for v in vals], [f"C{i}" for i in range(len(methods))])
+        _seed_bars(ax, methods, [list(v) for v in vals], [method_color(m) for m in methods])
         ax.set_yscale("log")
         allv = np.concatenate(vals)
         ax.set_ylim(allv.min() / 3, allv.max() * 3)  # a decade of room: bar heights stay comparable
