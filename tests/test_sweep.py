@@ -241,3 +241,26 @@ def test_a_sweep_policy_block_trains_task_policies_and_the_report_shows_them(tmp
     rows = json.loads((root / "report.json").read_text())["tables"][0]["rows"]
     assert [r["method"] for r in rows] == ["random", "mbpo-ts"]
     assert all(len(r["policy/spin/return"]) == 1 and r["policy/spin/return"][0] is not None for r in rows)
+
+
+def test_report_shows_the_heldout_error_by_group_where_runs_logged_groups(tmp_path):
+    """The arm logs its held-out error per group of state dimensions; the report keeps those
+    columns (mean over seeds, in logged order) beside the overall error."""
+    from torchrl_softae.pipeline.config import ExploreConfig
+    from torchrl_softae.pipeline.report import report
+
+    for seed, (overall, tip, vel) in enumerate([(2.0, 0.1, 5.0), (4.0, 0.3, 7.0)]):
+        run = tmp_path / "SoftArm-v0" / f"random-s{seed}"
+        run.mkdir(parents=True)
+        cfg = ExploreConfig(env="SoftArm-v0", method="random", episodes=1, seed=seed).to_dict()
+        (run / "config.json").write_text(json.dumps({"config": cfg}))
+        row = {"episode": 0, "transitions": 200, "coverage": 0.1, "heldout_nmse": overall,
+               "heldout_nmse/tip": tip, "heldout_nmse/velocities": vel}
+        (run / "metrics.jsonl").write_text(json.dumps(row) + "\n")
+    text, json_path, _, _ = report(tmp_path, plots=False)
+    table = json.loads(json_path.read_text())["tables"][0]
+    assert table["columns"] == ["method", "seeds", "held-out normalized MSE", "nMSE tip", "nMSE velocities",
+                                "coverage"]
+    (row,) = table["rows"]
+    assert row["heldout_nmse/tip"] == [0.1, 0.3] and row["heldout_nmse/velocities"] == [5.0, 7.0]
+    assert "| random | 2 | 3 ± 1 | 0.2 ± 0.1 | 6 ± 1 | 0.1 ± 0 |" in text

@@ -1,8 +1,8 @@
 """``softae report ROOT``: any folder of runs (a sweep, or runs made by hand) as the paper's tables.
 
 Per env and budget (episodes x transitions; runs of different budgets are never averaged
-together): one row per method with mean +- std over seeds of the held-out normalized MSE, the
-coverage and each evaluated task's zero-shot return (and its success measure where the task has
+together): one row per method with mean +- std over seeds of the held-out normalized MSE (and
+by group of state dimensions where the env defines groups), the coverage and each evaluated task's zero-shot return (and its success measure where the task has
 one), the real returns of the SAC task policies trained on the run's final model (``softae
 policy``, ``RUN/policies/``), plus the model-free reference rows where a run dir holds
 ``eval/references.json`` (``softae evaluate --references``, a sweep's ``evaluate: {references:
@@ -93,7 +93,12 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
         tasks = sorted({t for rs in by_method.values() for r in rs for t in r["evals"] if t != "references"})
         base = {t: t.split("@")[0] for t in tasks}
         metric_of = {t: entry.tasks[base[t]].success_metric if base[t] in entry.tasks else None for t in tasks}
-        head = ["method", "seeds", "held-out normalized MSE", "coverage"]
+        # the held-out error by group of state dimensions where the env defines groups (the arm:
+        # tip, positions, velocities, ...), in the order the runs logged them
+        groups = list(dict.fromkeys(k.split("/", 1)[1] for rs in by_method.values() for r in rs
+                                    for k in r["last"] if k.startswith("heldout_nmse/")))
+        head = ["method", "seeds", "held-out normalized MSE", *(f"nMSE {g.replace('_', ' ')}" for g in groups),
+                "coverage"]
         for t in tasks:
             head.append(f"{t} return")
             if metric_of[t]:
@@ -106,7 +111,11 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
             row = {"method": m, "seeds": sorted(r["seed"] for r in rs),
                    "heldout_nmse": [r["last"].get("heldout_nmse") for r in rs],
                    "coverage": [r["last"].get("coverage") for r in rs]}
-            cells = [m, str(len(rs)), _fmt(row["heldout_nmse"]), _fmt(row["coverage"], 3)]
+            cells = [m, str(len(rs)), _fmt(row["heldout_nmse"])]
+            for g in groups:
+                row[f"heldout_nmse/{g}"] = [r["last"].get(f"heldout_nmse/{g}") for r in rs]
+                cells.append(_fmt(row[f"heldout_nmse/{g}"], 3))
+            cells.append(_fmt(row["coverage"], 3))
             for t in tasks:
                 ret = [np.mean(r["evals"][t]["returns"]) if t in r["evals"] else None for r in rs]
                 row[f"{t}/return"] = ret
@@ -130,7 +139,7 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
                "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         md += [row["markdown"] for row in rows]
         for name, per_task in refs.items():
-            cells = [f"*{name}*", "-", "-", "-"]
+            cells = [f"*{name}*", "-", "-", *["-"] * len(groups), "-"]
             for t in tasks:
                 cells.append(_fmt(per_task.get(t.split("@")[0], []), 3))
                 if metric_of[t]:
