@@ -17,17 +17,9 @@ import torch
 
 from torchrl_softae.pipeline.methods import METHOD_NAMES, label_order, row_labels
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, run_dirs_below
+from torchrl_softae.tasks.base import metric_label
 
 __all__ = ["plot_run", "plot_comparison", "plot_path"]
-
-
-_UNITS = ("mm", "m", "rad", "s")  # a success metric's name ends with its unit: final_error_mm
-
-
-def _metric_label(metric: str) -> str:
-    """Axis label of a success metric: ``final_error_mm`` -> ``final error [mm]``."""
-    *words, last = metric.split("_")
-    return " ".join(words) + f" [{last}]" if words and last in _UNITS else metric.replace("_", " ")
 
 
 def _plt():
@@ -153,7 +145,7 @@ def plot_run(run_dir: str | Path) -> list[Path]:
         if with_metric:
             vals = [[m[metrics[t]] for m in evals[t]["metrics"]] for t in with_metric]
             axes[0][1].bar(with_metric, [np.mean(v) for v in vals], yerr=[np.std(v) for v in vals], capsize=4, color="C4")
-            axes[0][1].set_ylabel(" / ".join(sorted({_metric_label(metrics[t]) for t in with_metric})))
+            axes[0][1].set_ylabel(" / ".join(sorted({metric_label(metrics[t]) for t in with_metric})))
             axes[0][1].set_title("success measure", fontsize=10)
         fig.suptitle(f"{name}: zero-shot evaluation after {budget}", fontsize=10)
         written.append(_save(fig, run.plots / "eval_returns.png"))
@@ -267,7 +259,7 @@ def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> 
                     if metric:
                         vals = [[np.mean([x[metric] for x in e["metrics"]]) for e in per_method[m]] for m in methods]
                         _seed_bars(axes[1][j], methods, vals, "C4")
-                        axes[1][j].set_ylabel(_metric_label(metric), fontsize=9)
+                        axes[1][j].set_ylabel(metric_label(metric), fontsize=9)
                         axes[1][j].tick_params(axis="x", rotation=30)
                     else:
                         axes[1][j].axis("off")

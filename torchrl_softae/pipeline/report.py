@@ -23,6 +23,7 @@ import numpy as np
 
 from torchrl_softae.pipeline.methods import label_order, row_labels
 from torchrl_softae.pipeline.runs import POLICIES_DIR, CheckpointError, RunDir, run_dirs_below
+from torchrl_softae.tasks.base import metric_label
 
 __all__ = ["collect", "report"]
 
@@ -102,7 +103,7 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
         for t in tasks:
             head.append(f"{t} return")
             if metric_of[t]:
-                head.append(f"{t} {metric_of[t].replace('_', ' ')}")
+                head.append(f"{t} {metric_label(metric_of[t])}")
         policy_tasks = sorted({t for rs in by_method.values() for r in rs for t in r["policies"]})
         head += [f"{t} SAC policy return" for t in policy_tasks]
         rows = []

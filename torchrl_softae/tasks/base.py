@@ -11,7 +11,16 @@ from torchrl.envs.transforms import Transform
 
 from torchrl_softae.modules.planners.contract import PlanningTransform
 
-__all__ = ["Task", "TaskReward"]
+__all__ = ["Task", "TaskReward", "metric_label"]
+
+_UNITS = ("mm", "m", "rad", "s")  # a metric's name ends with its unit: final_error_mm
+
+
+def metric_label(metric: str) -> str:
+    """A metric's name for tables and axes: ``final_error_mm`` -> ``final error [mm]``."""
+    *words, last = metric.split("_")
+    return " ".join(words) + f" [{last}]" if words and last in _UNITS else metric.replace("_", " ")
+
 
 RewardFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
