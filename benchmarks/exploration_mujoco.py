@@ -9,8 +9,8 @@ Each method explores for a budget of episodes of 200 steps chosen so that SoftAE
 takes about an hour on 2 cores (100 episodes, about 10 s each); ``--episodes`` sets one budget
 for all.
 ``quick`` preset with
-iCEM H=20 -- the paper's H=100 for (v)-(viii) is out of reach on 2 CPU cores), then solves each
-task zero-shot. The paper reports Random failing on (v)-(viii) because random actions rarely
+iCEM H=20 -- the paper's H=100 for (v)-(vi) is out of reach on 2 CPU cores), then solves each
+task zero-shot. The paper reports Random failing on (v)-(vi) because random actions rarely
 produce thrust or hops; the table says whether that holds here.
 """
 import argparse
@@ -33,5 +33,5 @@ if __name__ == "__main__":
         args = argparse.Namespace(env=env, episodes=a.episodes or BUDGET[env], seeds=a.seeds, eval_episodes=a.eval_episodes,
                                   methods=["random", "softae"], root=None, threads=a.threads, overrides=[])
         tables.append(run(args, tasks=TASKS[env], overrides=["planner.horizon=20", "heldout_size=2000"],
-                          metric_keys={}, note=", iCEM H=20", references=True))
+                          note=", iCEM H=20", references=True))
     (RESULTS / "exploration_mujoco.md").write_text("\n\n".join(tables) + "\n")

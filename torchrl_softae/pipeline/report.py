@@ -2,8 +2,8 @@
 
 Per env and budget (episodes x transitions; runs of different budgets are never averaged
 together): one row per method with mean +- std over seeds of the held-out normalized MSE (and
-by group of state dimensions where the env defines groups), the coverage and each evaluated task's zero-shot return (and its success measure where the task has
-one), the real returns of the SAC task policies trained on the run's final model (``softae
+by group of state dimensions where the env defines groups), the coverage and each evaluated
+task's zero-shot return (and its success measure where the task has one), the real returns of the SAC task policies trained on the run's final model (``softae
 policy``, ``RUN/policies/``), plus the model-free reference rows where a run dir holds
 ``eval/references.json`` (``softae evaluate --references``, a sweep's ``evaluate: {references:
 true}``). Runs that
