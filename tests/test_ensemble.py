@@ -5,6 +5,7 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_softae.modules import EnsembleWorldModel, ensemble_std
+from torchrl_softae.modules import ensemble as ensemble_module
 from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 
 
@@ -214,6 +215,40 @@ def test_fused_activation_path_computes_what_the_training_path_computes(activati
         torch.testing.assert_close(model.network(x)[0], ref, rtol=1e-4, atol=1e-5)
         model.planning_dtype = torch.bfloat16
         assert (model.network(x)[0] - ref).abs().max() < 0.05 * ref.abs().max()
+
+
+@pytest.mark.skipif(ensemble_module._PACK_CONV_WEIGHT is None, reason="this torch build has no oneDNN weight pre-packing")
+def test_packed_conv_weights_match(monkeypatch):
+    """Weights pre-packed into oneDNN's layout once give the plain-weight convolutions' results, in
+    fp32 and bf16, fused or not, at row counts other than the one they were packed for (bit for
+    bit where both run the same oneDNN op; the unfused plain path runs ``F.conv2d``, whose kernel
+    for a single row rounds differently); an optimizer step re-packs them (no stale weights)."""
+    torch.manual_seed(0)
+    model = EnsembleWorldModel(6, 2, num_cells=32, depth=3).eval()
+    xs = [torch.randn(n, 8) for n in (200, 7, 1, 300)]  # packed for 256 rows by the first
+    for dtype in (None, torch.bfloat16):
+        model.planning_dtype = dtype
+        for path in ("conv", "conv-fused"):
+            model.inference_path = path
+            with torch.no_grad():
+                packed = [model.network(x)[0] for x in xs]
+                monkeypatch.setattr(ensemble_module, "_PACK_CONV_WEIGHT", None)
+                plain = [model.network(x)[0] for x in xs]
+                monkeypatch.undo()
+            for a, b in zip(packed, plain):
+                if path == "conv-fused":
+                    assert torch.equal(a, b)
+                else:
+                    torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+    model.planning_dtype, model.inference_path = None, "conv-fused"
+    with torch.no_grad():
+        before = model.network(xs[0])[0]
+        model.layers[1].weight.mul_(0.5)  # in place, as an optimizer step: the version counter moves
+        after = model.network(xs[0])[0]
+    model.inference_path = "bmm"
+    with torch.no_grad():
+        torch.testing.assert_close(after, model.network(xs[0])[0], rtol=1e-4, atol=1e-5)
+    assert not torch.allclose(before, after)
 
 
 def test_auto_precision_is_fp32_where_bf16_is_not_native(monkeypatch):
