@@ -348,7 +348,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
         if memo in self._path_memo:  # the hot path: no key string, no probe tensor per forward
             return self._path_memo[memo]
         shapes = ",".join(f"{layer.in_features}x{layer.out_features}" for layer in self.layers)
-        key = f"ensemble {self.ensemble_size}|{shapes}|{dtype}|rows {rows}|cols {cols}"
+        # packed conv weights change how fast the conv paths are: a choice measured without them
+        # (an older cache) is not this choice
+        packing = "packed conv weights" if _PACK_CONV_WEIGHT is not None else "plain conv weights"
+        key = f"ensemble {self.ensemble_size}|{shapes}|{dtype}|rows {rows}|cols {cols}|{packing}"
         probe = torch.randn(rows, x.shape[1], dtype=x.dtype, generator=torch.Generator().manual_seed(0))
         candidates = {"conv": lambda: self._network_grouped_conv(probe, dtype, cols)}
         if self._fused_activation() is not None:
