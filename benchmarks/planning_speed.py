@@ -22,10 +22,16 @@ reported as median and best, so a noisy machine cannot make one ratio out of one
   ...@PATH          (--compare-paths) the four icem rows with the ensemble's inference path fixed
                     (conv, conv-fused, bmm) instead of measured at first use
 
+``--layer-costs`` also times ONE hidden layer (L=5 members, 256 -> 256) at the planner's row counts
+(206 = 200 candidates + 6 kept elites with one particle, 2060 with ten): the GEMM alone
+(batched matmul), its SiLU alone (in place), and both in one oneDNN call (grouped convolution with
+the SiLU as a post-op), fp32 and bf16, interleaved. Where the activation costs about as much as
+the GEMM, no GEMM speed-up can make the layer much faster: "layer bf16/fp32" is the bound.
+
 Prints the CPU (vendor, AVX-512, AVX512-BF16, AMX), the GEMM peaks of every path measured in the
 same run (MKL ``a @ b`` and oneDNN 1x1 convolution, fp32 and bf16), and "% of peak" against the
 best peak of the dtype each planner's hidden layers use. Results: stdout and
-benchmarks/results/planning_speed.json. mbrl-lib: ``pip install --no-deps mbrl==0.2.0 hydra-core
+benchmarks/results/planning_speed-KIND.json (KIND: amx, avx512-bf16 or no-bf16). mbrl-lib: ``pip install --no-deps mbrl==0.2.0 hydra-core
 omegaconf termcolor``.
 """
 from __future__ import annotations
@@ -73,6 +79,11 @@ def cpu_description() -> dict:
             "amx_bf16": "amx_bf16" in flags, "machine": platform.machine()}
 
 
+def cpu_kind(cpu: dict) -> str:
+    """What decides bf16 speed here: AMX tiles, AVX512-BF16 dot products, or neither."""
+    return "amx" if cpu["amx_bf16"] else "avx512-bf16" if cpu["avx512_bf16"] else "no-bf16"
+
+
 def make_model(d_s, d_a, seed=0):
     torch.manual_seed(seed)
     m = EnsembleWorldModel(d_s, d_a)
@@ -100,6 +111,60 @@ def peaks(n=2048) -> dict:
         out[f"matmul_{name}"] = 2 * n**3 / _best(lambda: a @ b) / 1e9
         out[f"onednn_{name}"] = 2 * n**3 / _best(lambda: torch.nn.functional.conv2d(x, w)) / 1e9
     return out
+
+
+def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256) -> list[dict]:
+    """Median microseconds of one hidden layer's GEMM, its SiLU and the fused GEMM + SiLU, per
+    dtype and row count (``repeats`` interleaved rounds of ``calls`` calls each)."""
+    F = torch.nn.functional
+    rows_of = {"1 particle": P + int(0.3 * K + 0.999), "10 particles": (P + int(0.3 * K + 0.999)) * N}
+    jobs = {}
+    for label, n in rows_of.items():
+        for dtype in (torch.float32, torch.bfloat16):
+            g = torch.Generator().manual_seed(0)
+            x = torch.randn(L, n, h, generator=g).to(dtype)
+            w = (torch.randn(L, h, h, generator=g) / h**0.5).to(dtype)
+            y = torch.randn(L, n, h, generator=g).to(dtype)
+            xc = torch.randn(n, L * h, generator=g).to(dtype).t().unsqueeze(0).unsqueeze(-1)  # (1, L*h, n, 1)
+            wc = w.transpose(1, 2).reshape(L * h, h, 1, 1).contiguous().to(memory_format=torch.channels_last)
+            bc = torch.zeros(L * h, dtype=dtype)
+            name = "bf16" if dtype == torch.bfloat16 else "fp32"
+            jobs[(label, name, "gemm")] = lambda x=x, w=w: torch.bmm(x, w)
+            jobs[(label, name, "silu")] = lambda y=y: F.silu(y, inplace=True)
+            if hasattr(torch.ops.mkldnn, "_convolution_pointwise"):
+                jobs[(label, name, "fused")] = lambda xc=xc, wc=wc, bc=bc: torch.ops.mkldnn._convolution_pointwise(
+                    xc, wc, bc, [0, 0], [1, 1], [1, 1], L, "swish", [], "")
+    times = {k: [] for k in jobs}
+    with torch.no_grad():
+        for fn in jobs.values():
+            fn()
+        for _ in range(repeats):
+            for key, fn in jobs.items():
+                t = time.perf_counter()
+                for _ in range(calls):
+                    fn()
+                times[key].append((time.perf_counter() - t) / calls)
+    out = []
+    for label, n in rows_of.items():
+        row = {"rows": n, "particles": label}
+        for name in ("fp32", "bf16"):
+            for part in ("gemm", "silu", "fused"):
+                if (label, name, part) in times:
+                    row[f"{name}_{part}_us"] = 1e6 * statistics.median(times[(label, name, part)])
+        out.append(row)
+    return out
+
+
+def print_layer_costs(rows: list[dict]) -> None:
+    print("\n| one hidden layer (5 x 256 -> 256) | rows | fp32 GEMM / SiLU / fused [us] | bf16 GEMM / SiLU / fused [us] "
+          "| SiLU share of a bf16 layer | GEMM bf16/fp32 | layer bf16/fp32 |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        def trio(name):
+            return " / ".join(f"{r[k]:.0f}" if (k := f"{name}_{p}_us") in r else "-" for p in ("gemm", "silu", "fused"))
+        g32, s32, g16, s16 = r["fp32_gemm_us"], r["fp32_silu_us"], r["bf16_gemm_us"], r["bf16_silu_us"]
+        print(f"| {r['particles']} | {r['rows']} | {trio('fp32')} | {trio('bf16')} | {100 * s16 / (g16 + s16):.0f}% "
+              f"| {g32 / g16:.2f}x | {(g32 + s32) / (g16 + s16):.2f}x |")
 
 
 def flops_per_action(model, rows, H, iters):
@@ -150,12 +215,17 @@ def main():
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--compare-paths", action="store_true",
                    help="also time the icem rows with each inference path fixed (conv, conv-fused, bmm)")
-    p.add_argument("--out", default=str(Path(__file__).parent / "results" / "planning_speed.json"))
+    p.add_argument("--layer-costs", action="store_true",
+                   help="also time one hidden layer's GEMM, SiLU and fused GEMM + SiLU at the planner's row counts")
+    p.add_argument("--out", default=None,
+                   help="default benchmarks/results/planning_speed-KIND.json, KIND = amx, avx512-bf16 or no-bf16: "
+                        "the project's machines differ in CPU, and each kind keeps its own record")
     args = p.parse_args()
     repeats = max(args.repeats, 5)
     torch.set_num_threads(args.threads)
     shapes = [s for s in SHAPES if not args.quick or s[0] in ("arm58", "sopra32-H5")]
     cpu = cpu_description()
+    out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"planning_speed-{cpu_kind(cpu)}.json"
     pk = peaks()
     best_peak = {"fp32": max(pk["matmul_fp32"], pk["onednn_fp32"]), "bf16": max(pk["matmul_bf16"], pk["onednn_bf16"])}
     print(f"# planning_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
@@ -233,9 +303,12 @@ def main():
               f"dedup fp32 vs CEMPlanner {rr['icem-fp32-dedup']['speedup_vs_cem_median']:.2f}x"
               + (f", full fp32 vs mbrl-lib {rr['mbrl-icem']['median_s'] / rr['icem-fp32-full']['median_s']:.2f}x"
                  if "mbrl-icem" in rr else ""))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(results, indent=1))
-    print(f"\nwrote {args.out}")
+    if args.layer_costs:
+        results["layer_costs"] = layer_costs(repeats)
+        print_layer_costs(results["layer_costs"])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=1))
+    print(f"\nwrote {out}")
 
 
 if __name__ == "__main__":
