@@ -192,6 +192,30 @@ def test_model_env_contract_matches_torchrl_generic_rollout(mode):
     torch.testing.assert_close(contract, generic)
 
 
+def test_evaluate_action_sequences_refuses_sequences_outside_the_action_spec():
+    """Uniform bounds (the one-pass check) and per-dimension bounds (the fallback) alike: at the
+    bounds is inside, a hair beyond them is outside."""
+    from torchrl_softae.envs.model_env import _leaves_box
+
+    tenv = TransformedEnv(_model_env("optimistic"), Compose(HallucinatedControl(), UncertaintyReward()))
+    obs = TensorDict({"observation": torch.randn(1, 3)}, [1])
+    d = tenv.action_spec.shape[-1]
+    at_bounds = torch.rand(1, 4, 3, d).round() * 2 - 1  # only -1 and 1
+    assert torch.isfinite(tenv.base_env.evaluate_action_sequences(obs, at_bounds, num_particles=1, env=tenv)).all()
+    beyond = at_bounds.clone()
+    beyond[0, 2, 1, d - 1] = 1.001
+    with pytest.raises(ValueError, match="leave the action spec"):
+        tenv.base_env.evaluate_action_sequences(obs, beyond, num_particles=1, env=tenv)
+    low, high = torch.tensor([-1.0, 0.0, -2.0]), torch.tensor([1.0, 0.5, 2.0])
+    x = torch.tensor([[0.9, 0.5, -2.0], [-1.0, 0.0, 1.9]])
+    assert not _leaves_box(x, low, high)
+    for i, j, v in ((0, 1, 0.51), (1, 1, -0.01), (0, 0, 1.01), (1, 2, -2.01)):
+        y = x.clone()
+        y[i, j] = v
+        assert _leaves_box(y, low, high), (i, j, v)
+    assert not _leaves_box(torch.full((2, 3), 0.25), low, high)  # the one-pass check alone decides
+
+
 def test_a_second_planner_plans_through_the_same_contract():
     """MPPI uses the model env's evaluator (no getattr probing) and the generic path elsewhere."""
     tenv = TransformedEnv(_model_env("optimistic"), Compose(HallucinatedControl(), UncertaintyReward()))
