@@ -33,14 +33,22 @@ __all__ = ["EnsembleLinear", "Normalizer", "EnsembleWorldModel", "ensemble_std",
 
 def _conv_weight_packer():
     """oneDNN's weight pre-packing for :func:`torch.ops.mkldnn._convolution_pointwise` (what
-    inductor uses for frozen convolutions), or ``None`` in builds without it."""
+    inductor uses for frozen convolutions), or ``None`` in builds without the two."""
+    if not hasattr(torch.ops.mkldnn, "_convolution_pointwise"):
+        return None
     try:
         return torch.ops.mkldnn._reorder_convolution_weight
     except (AttributeError, RuntimeError):
         return None
 
 
-_PACK_CONV_WEIGHT = _conv_weight_packer() if hasattr(torch.ops.mkldnn, "_convolution_pointwise") else None
+_PACK_CONV_WEIGHT = _conv_weight_packer()
+
+
+def _row_bucket(rows: int) -> int:
+    """The power of two at or above ``rows`` (at least 2): measured choices and packed weights are
+    kept per bucket, not per exact row count."""
+    return 1 << max(int(rows) - 1, 1).bit_length()
 
 
 def symlog(x: torch.Tensor) -> torch.Tensor:
@@ -343,7 +351,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         forced = self.inference_path if self.inference_path != "auto" else os.environ.get("SOFTAE_INFERENCE_PATH", "auto")
         if forced in INFERENCE_PATHS:
             return forced
-        rows = 1 << max(int(x.shape[0]) - 1, 1).bit_length()  # power-of-two row buckets
+        rows = _row_bucket(x.shape[0])
         memo = (dtype, rows, cols, torch.get_num_threads())
         if memo in self._path_memo:  # the hot path: no key string, no probe tensor per forward
             return self._path_memo[memo]
@@ -367,7 +375,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         device = self.input_normalizer.loc.device
         if resolve_planning_dtype("auto", device) is None:
             return None
-        rows = 1 << max(rows - 1, 1).bit_length()
+        rows = _row_bucket(rows)
         memo = ("precision", device.type, rows, torch.get_num_threads())
         if memo in self._path_memo:  # once per plan call: no probe tensor after the first
             return self._path_memo[memo]
@@ -439,7 +447,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         every call: measured on an AMX CPU, the reorder was a quarter to a third of a bf16 layer at
         the 206 rows of one-particle planning. Any row count is still correct with it (the same
         results as the plain weight: ``test_packed_conv_weights_match``)."""
-        bucket = None if rows is None else 1 << max(rows - 1, 1).bit_length()
+        bucket = None if rows is None else _row_bucket(rows)
 
         def build(w, b):
             if cols is not None:
