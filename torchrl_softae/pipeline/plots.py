@@ -31,8 +31,9 @@ def _plt():
     return plt
 
 
-def _save(fig, path: Path) -> Path:
-    fig.tight_layout()
+def _save(fig, path: Path, layout: bool = True) -> Path:
+    if layout:
+        fig.tight_layout()
     fig.savefig(path, dpi=120)
     _plt().close(fig)
     return path
@@ -224,15 +225,17 @@ def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> 
         prefix = f"{env}_{transitions}tr_" if len(groups) > 1 else ""
         title = f"{env}, {budget}, {seed_text}"
 
-        fig, ax = plt.subplots(figsize=(1.3 * len(methods) + 2.5, 3.8))
+        colors = [method_color(m) for m in methods]  # a method's colour in every panel and figure
+        fig, ax = plt.subplots(figsize=(1.3 * len(methods) + 2.5, 4.0))
         vals = [np.array([s["history"][-1]["heldout_nmse"] for _, s in by_method[m]]) for m in methods]
         # min-max whiskers: never below a log axis, unlike mean - std
-        _seed_bars(ax, methods, [list(v) for v in vals], [method_color(m) for m in methods])
+        _seed_bars(ax, methods, [list(v) for v in vals], colors)
         ax.set_yscale("log")
         allv = np.concatenate(vals)
         ax.set_ylim(allv.min() / 3, allv.max() * 3)  # a decade of room: bar heights stay comparable
         ax.set_ylabel("held-out normalized MSE")
-        ax.set_title(f"{title}\nbar: mean, whiskers: min-max, dots: seeds", fontsize=9)
+        # the env on a line of its own: a figure this narrow cut the one-line title off
+        ax.set_title(f"{env}\n{budget}, {seed_text}\nbar: mean, whiskers: min-max, dots: seeds", fontsize=9)
         written.append(_save(fig, out_dir / f"{prefix}mse_bars.png"))
 
         tasks = sorted({t for m in methods for r, _ in by_method[m] for t in _evals(r)})
@@ -245,27 +248,29 @@ def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> 
             for j, task in enumerate(tasks):
                 per_method = {m: [_evals(r)[task] for r, _ in by_method[m] if task in _evals(r)] for m in methods}
                 ret = [[np.mean(e["returns"]) for e in per_method[m]] for m in methods]
-                _seed_bars(axes[0][j], methods, ret, "C2")
+                _seed_bars(axes[0][j], methods, ret, colors)
                 for k, (label, per_task) in enumerate(refs.items()):  # the same episodes without a model
                     if per_task.get(task.split("@")[0]):
                         axes[0][j].axhline(np.mean(per_task[task.split("@")[0]]), color="k", lw=1,
                                            ls=("--", ":")[k % 2], label=label)
-                if refs and j == len(tasks) - 1:
-                    axes[0][j].legend(fontsize=7)
                 axes[0][j].set_title(task, fontsize=10)
                 axes[0][j].tick_params(axis="x", rotation=30)
                 if rows == 2:
                     metric = metric_of[task]
                     if metric:
                         vals = [[np.mean([x[metric] for x in e["metrics"]]) for e in per_method[m]] for m in methods]
-                        _seed_bars(axes[1][j], methods, vals, "C4")
+                        _seed_bars(axes[1][j], methods, vals, colors)
                         axes[1][j].set_ylabel(metric_label(metric), fontsize=9)
                         axes[1][j].tick_params(axis="x", rotation=30)
                     else:
                         axes[1][j].axis("off")
             axes[0][0].set_ylabel("zero-shot return")
             fig.suptitle(f"{title}\nbar: mean over seeds, whiskers: min-max, dots: seeds", fontsize=10)
-            written.append(_save(fig, out_dir / f"{prefix}task_returns.png"))
+            handles, labels = axes[0][-1].get_legend_handles_labels()
+            if handles:  # below the panels: inside one, it covered a bar
+                fig.tight_layout(rect=(0, 0.07, 1, 1))
+                fig.legend(handles, labels, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
+            written.append(_save(fig, out_dir / f"{prefix}task_returns.png", layout=not handles))
 
         points = {f"{m} ({len(by_method[m])} seed{'s' * (len(by_method[m]) != 1)}, cov. "
                   f"{np.mean([s['history'][-1]['coverage'] for _, s in by_method[m]]):.2f})":
