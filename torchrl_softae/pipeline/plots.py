@@ -31,9 +31,9 @@ def _plt():
     return plt
 
 
-def _save(fig, path: Path, layout: bool = True) -> Path:
-    if layout:
-        fig.tight_layout()
+def _save(fig, path: Path, rect=(0, 0, 1, 1)) -> Path:
+    """``rect``: the part of the figure the axes may fill (room for a figure legend below)."""
+    fig.tight_layout(rect=rect)
     fig.savefig(path, dpi=120)
     _plt().close(fig)
     return path
@@ -268,9 +268,8 @@ def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> 
             fig.suptitle(f"{title}\nbar: mean over seeds, whiskers: min-max, dots: seeds", fontsize=10)
             handles, labels = axes[0][-1].get_legend_handles_labels()
             if handles:  # below the panels: inside one, it covered a bar
-                fig.tight_layout(rect=(0, 0.07, 1, 1))
                 fig.legend(handles, labels, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
-            written.append(_save(fig, out_dir / f"{prefix}task_returns.png", layout=not handles))
+            written.append(_save(fig, out_dir / f"{prefix}task_returns.png", rect=(0, 0.07 if handles else 0, 1, 1)))
 
         points = {f"{m} ({len(by_method[m])} seed{'s' * (len(by_method[m]) != 1)}, cov. "
                   f"{np.mean([s['history'][-1]['coverage'] for _, s in by_method[m]]):.2f})":
