@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import statistics
 import time
@@ -62,6 +63,7 @@ SHAPES = [  # (name, d_s, d_a, H)
     ("sopra32-H5", 32, 6, 5),
 ]
 P, K, I, N = 200, 20, 5, 10
+KEPT = math.ceil(0.3 * K)  # iCEM adds xi * K kept elites to its P samples
 
 
 def cpu_description() -> dict:
@@ -117,7 +119,7 @@ def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256) -> list
     """Median microseconds of one hidden layer's GEMM, its SiLU and the fused GEMM + SiLU, per
     dtype and row count (``repeats`` interleaved rounds of ``calls`` calls each)."""
     F = torch.nn.functional
-    rows_of = {"1 particle": P + int(0.3 * K + 0.999), "10 particles": (P + int(0.3 * K + 0.999)) * N}
+    rows_of = {"1 particle": P + KEPT, "10 particles": (P + KEPT) * N}
     jobs = {}
     for label, n in rows_of.items():
         for dtype in (torch.float32, torch.bfloat16):
@@ -286,8 +288,8 @@ def main():
         base = statistics.median(times["cem-torchrl"])
         for key, (planner, dtype, rows) in planners.items():
             med, best = statistics.median(times[key]), min(times[key])
-            if rows is None:  # iCEM adds xi*K kept elites (and the mean) to its samples
-                rows = (P + int(0.3 * K + 0.999)) * planner.effective_particles
+            if rows is None:
+                rows = (P + KEPT) * planner.effective_particles
             iters = getattr(planner, "last_info", {}).get("iterations", I)  # CEMPlanner keeps no info
             frac = flops_per_action(model, rows, H, iters) / best / (best_peak[dtype] * 1e9)
             row = dict(shape=name, d_s=d_s, d_a=d_a, H=H, planner=key, median_s=med, best_s=best, dtype=dtype,
