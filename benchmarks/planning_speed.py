@@ -28,6 +28,10 @@ reported as median and best, so a noisy machine cannot make one ratio out of one
 the SiLU as a post-op), fp32 and bf16, interleaved. Where the activation costs about as much as
 the GEMM, no GEMM speed-up can make the layer much faster: "layer bf16/fp32" is the bound.
 
+``--loop-overhead`` times one SoftAE candidate evaluation (``evaluate_action_sequences``, one
+particle, the arm's shape) against a hand-written loop of the same arithmetic (checked equal) and
+against its network calls alone: what the horizon loop costs beyond the model.
+
 Prints the CPU (vendor, AVX-512, AVX512-BF16, AMX), the GEMM peaks of every path measured in the
 same run (MKL ``a @ b`` and oneDNN 1x1 convolution, fp32 and bf16), and "% of peak" against the
 best peak of the dtype each planner's hidden layers use. Results: stdout and
@@ -52,6 +56,7 @@ from torchrl.modules import CEMPlanner
 
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
+from torchrl_softae.modules.ensemble import ensemble_std
 from torchrl_softae.modules.paths import INFERENCE_PATHS
 from torchrl_softae.modules.precision import cpu_flags
 
@@ -169,6 +174,77 @@ def print_layer_costs(rows: list[dict]) -> None:
               f"| {g32 / g16:.2f}x | {(g32 + s32) / (g16 + s16):.2f}x |")
 
 
+def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10) -> list[dict]:
+    """Median milliseconds of one SoftAE candidate evaluation (``evaluate_action_sequences``, the
+    ``HallucinatedControl`` + ``UncertaintyReward`` stack, one particle, P + kept elites rows, H
+    steps) against a hand-written loop of the same arithmetic and against the H network calls
+    alone, fp32 and bf16, interleaved. The hand-written loop's returns must equal ours."""
+    model = make_model(d_s, d_a)
+    base = EnsembleModelEnv(model, mode="optimistic")
+    env = TransformedEnv(base, Compose(HallucinatedControl(2.0), UncertaintyReward()))
+    rows = P + KEPT
+    g = torch.Generator().manual_seed(0)
+    start = TensorDict({"observation": torch.randn(1, d_s, generator=g)}, [1])
+    seqs = torch.rand(1, rows, H, d_a + d_s, generator=g) * 2 - 1
+    x = torch.randn(rows, d_s + d_a, generator=g)
+    inn, out_norm = model.input_normalizer, model.output_normalizer
+
+    def ours(prec):
+        return lambda: base.evaluate_action_sequences(start, seqs, num_particles=1, env=env, precision=prec)[0]
+
+    def hand(dtype):
+        def fn():
+            model.planning_dtype = dtype
+            s = start["observation"].expand(rows, d_s)
+            ret = torch.zeros(rows)
+            for h in range(H):
+                a, eta = seqs[0, :, h, :d_a], 2.0 * seqs[0, :, h, d_a:]
+                y, _ = model.network((torch.cat([s, a], -1) - inn.loc) / inn.scale, with_logvar=False)
+                members = torch.addcmul(s + out_norm.loc, out_norm.scale, y)
+                mu = members.mean(0)
+                sigma = ensemble_std(members, mu)
+                s = torch.addcmul(mu, sigma, eta)
+                ret += sigma.square().sum(-1).sqrt()
+            model.planning_dtype = None
+            return ret
+        return fn
+
+    def network(dtype):
+        def fn():
+            model.planning_dtype = dtype
+            for _ in range(H):
+                model.network(x, with_logvar=False)
+            model.planning_dtype = None
+        return fn
+
+    jobs = {}
+    for name, dtype in (("fp32", None), ("bf16", torch.bfloat16)):
+        jobs[(name, "ours")], jobs[(name, "hand")], jobs[(name, "network")] = ours(name), hand(dtype), network(dtype)
+    with torch.no_grad():
+        for name in ("fp32", "bf16"):
+            a, b = jobs[(name, "ours")](), jobs[(name, "hand")]()
+            if not torch.allclose(a, b, rtol=1e-3, atol=1e-3):
+                raise AssertionError(f"the hand-written {name} loop disagrees with evaluate_action_sequences")
+        times = {k: [] for k in jobs}
+        for _ in range(repeats):
+            for key, fn in jobs.items():
+                t = time.perf_counter()
+                fn()
+                times[key].append(time.perf_counter() - t)
+    return [{"dtype": name, "rows": rows, "H": H,
+             **{f"{part}_ms": 1e3 * statistics.median(times[(name, part)]) for part in ("ours", "hand", "network")}}
+            for name in ("fp32", "bf16")]
+
+
+def print_loop_overhead(rows: list[dict]) -> None:
+    print(f"\n| one SoftAE candidate evaluation (58, 12), {rows[0]['rows']} rows, H={rows[0]['H']} | ours [ms] "
+          "| hand-written loop [ms] | network calls alone [ms] | network share of ours |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['dtype']} | {r['ours_ms']:.1f} | {r['hand_ms']:.1f} | {r['network_ms']:.1f} "
+              f"| {100 * r['network_ms'] / r['ours_ms']:.0f}% |")
+
+
 def flops_per_action(model, rows, H, iters):
     per_row = sum(2 * layer.in_features * layer.out_features for layer in model.layers) * model.ensemble_size
     return per_row * rows * H * iters
@@ -219,6 +295,8 @@ def main():
                    help="also time the icem rows with each inference path fixed (conv, conv-fused, bmm)")
     p.add_argument("--layer-costs", action="store_true",
                    help="also time one hidden layer's GEMM, SiLU and fused GEMM + SiLU at the planner's row counts")
+    p.add_argument("--loop-overhead", action="store_true",
+                   help="also time one SoftAE candidate evaluation against a hand-written loop and the network alone")
     p.add_argument("--out", default=None,
                    help="default benchmarks/results/planning_speed-KIND.json, KIND = amx, avx512-bf16 or no-bf16: "
                         "the project's machines differ in CPU, and each kind keeps its own record")
@@ -308,6 +386,9 @@ def main():
     if args.layer_costs:
         results["layer_costs"] = layer_costs(repeats)
         print_layer_costs(results["layer_costs"])
+    if args.loop_overhead:
+        results["loop_overhead"] = loop_overhead(repeats * 3)
+        print_loop_overhead(results["loop_overhead"])
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1))
     print(f"\nwrote {out}")
