@@ -2,6 +2,7 @@
 and resumed bit for bit, reruns that do no work, `softae report`, and bad input before any trial."""
 import importlib.util
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -148,6 +149,18 @@ def test_local_processes_sweep_resumes_a_killed_trial(tmp_path, capsys, monkeypa
     finished = [r for r in data["runs"] if r["episodes_done"] == 3]
     assert len(finished) == 4 and all([h["episode"] for h in r["history"]] == [0, 1, 2] for r in finished)
     assert all(r["evals"]["swingup@horizon=2"]["returns"] for r in finished)
+
+    # the committed report alone redraws the same comparison bars once the run dirs are gone
+    drawn = {name: (root / "plots" / name).read_bytes() for name in ("mse_bars.png", "task_returns.png")}
+    archive = tmp_path / "committed"
+    archive.mkdir()
+    (archive / "report.json").write_bytes((root / "report.json").read_bytes())
+    shutil.rmtree(root)
+    assert main(["plot", "--report", str(archive / "report.json")]) == 0
+    assert "coverage heatmaps need the run dirs" in capsys.readouterr().err
+    assert {name: (archive / "plots" / name).read_bytes() for name in drawn} == drawn
+    assert main(["plot", "--report", str(root / "report.json")]) == 2
+    assert "is not a file" in capsys.readouterr().err
 
 
 def test_row_labels_keep_apart_runs_of_a_method_that_differ_in_more_than_the_seed():

@@ -4,6 +4,7 @@
     softae evaluate --run-dir runs/pend --task swingup
     softae policy   --run-dir runs/pend --task swingup   (SAC on the run's model: SoftAE-MBPO)
     softae plot     --run-dir runs/pend          (a run, or a folder of runs to compare)
+    softae plot     --report REPORT.json         (a report's comparison bars, without its run dirs)
     softae sweep    sweeps/pendulum.yaml         (a grid of runs, many at once on Ray Tune)
     softae report   runs                         (tables and plots from a folder of runs)
     softae demo                                  (a short exploration + evaluation + plots)
@@ -109,9 +110,14 @@ def cmd_policy(args) -> int:
 
 
 def cmd_plot(args) -> int:
-    from torchrl_softae.pipeline.plots import plot_path
+    from torchrl_softae.pipeline.plots import plot_path, plot_report
 
-    for p in plot_path(args.run_dir):
+    if args.report is not None:
+        written = plot_report(args.report)
+        print("(the coverage heatmaps need the run dirs: not redrawn from a report)", file=sys.stderr)
+    else:
+        written = plot_path(args.run_dir)
+    for p in written:
         print(p)
     return 0
 
@@ -245,7 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_policy)
 
     p = sub.add_parser("plot", help="coverage heatmaps, curves and bars as PNG files")
-    p.add_argument("--run-dir", required=True, help="a run dir, or a folder of runs to compare methods")
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--run-dir", help="a run dir, or a folder of runs to compare methods")
+    what.add_argument("--report", help="a report.json of softae report: its comparison bars redrawn without the run dirs")
     p.set_defaults(func=cmd_plot)
 
     p = sub.add_parser("sweep", help="run a W&B sweep file's grid as many runs at once (Ray Tune, or local processes)",

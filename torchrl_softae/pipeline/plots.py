@@ -19,7 +19,7 @@ from torchrl_softae.pipeline.methods import METHOD_NAMES, label_order, row_label
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, run_dirs_below
 from torchrl_softae.tasks.base import metric_label
 
-__all__ = ["plot_run", "plot_comparison", "plot_path"]
+__all__ = ["plot_run", "plot_comparison", "plot_report", "plot_path"]
 
 
 def _plt():
@@ -185,13 +185,97 @@ def _seed_bars(ax, labels: list[str], values: list[list[float]], color) -> None:
         ax.plot([i] * len(v), v, ".", color="k", ms=4)
 
 
+def _group_by_budget_and_label(records: list[dict]) -> dict[tuple, dict[str, list[dict]]]:
+    """``{(env, episodes, transitions): {row label: [record, ...]}}``: runs of one env and budget
+    side by side, runs of a method that differ in more than the seed apart (``row_labels``)."""
+    budgets: dict[tuple, list] = defaultdict(list)
+    for rec in records:
+        budgets[(rec["config"]["env"], rec["episodes"], rec["transitions"])].append(rec)
+    groups = {}
+    for key, rs in budgets.items():
+        groups[key] = defaultdict(list)
+        for rec, label in zip(rs, row_labels([rec["config"] for rec in rs])):
+            groups[key][label].append(rec)
+    return groups
+
+
+def _comparison_bars(plt, by_method: dict[str, list[dict]], entry, title: str, budget: str, seed_text: str,
+                     out_dir: Path, prefix: str) -> list[Path]:
+    """The held-out MSE bars and the zero-shot task bars of one (env, budget) group. A record is
+    one run's ``history`` (per episode), ``evals`` (task -> evaluation) and ``references``
+    (label -> task -> model-free returns)."""
+    env = entry.env_id
+    methods = label_order(by_method)
+    colors = [method_color(m) for m in methods]  # a method's colour in every panel and figure
+    written = []
+    fig, ax = plt.subplots(figsize=(1.3 * len(methods) + 2.5, 4.0))
+    vals = [np.array([rec["history"][-1]["heldout_nmse"] for rec in by_method[m]]) for m in methods]
+    # min-max whiskers: never below a log axis, unlike mean - std
+    _seed_bars(ax, methods, [list(v) for v in vals], colors)
+    ax.set_yscale("log")
+    allv = np.concatenate(vals)
+    ax.set_ylim(allv.min() / 3, allv.max() * 3)  # a decade of room: bar heights stay comparable
+    ax.set_ylabel("held-out normalized MSE")
+    # the env on a line of its own: a figure this narrow cut the one-line title off
+    ax.set_title(f"{env}\n{budget}, {seed_text}\nbar: mean, whiskers: min-max, dots: seeds", fontsize=9)
+    written.append(_save(fig, out_dir / f"{prefix}mse_bars.png"))
+
+    tasks = sorted({t for m in methods for rec in by_method[m] for t in rec["evals"]})
+    if not tasks:
+        return written
+    metric_of = {t: _success_metric(entry, t) for t in tasks}
+    rows = 2 if any(metric_of.values()) else 1
+    fig, axes = plt.subplots(rows, len(tasks), figsize=(max(3.4 * len(tasks) + 1, 6.5), 3.2 * rows),
+                             squeeze=False)  # wide enough for the title
+    refs = next((rec["references"] for m in methods for rec in by_method[m] if rec["references"]), {})
+    for j, task in enumerate(tasks):
+        per_method = {m: [rec["evals"][task] for rec in by_method[m] if task in rec["evals"]] for m in methods}
+        ret = [[np.mean(e["returns"]) for e in per_method[m]] for m in methods]
+        _seed_bars(axes[0][j], methods, ret, colors)
+        for k, (label, per_task) in enumerate(refs.items()):  # the same episodes without a model
+            if per_task.get(task.split("@")[0]):
+                axes[0][j].axhline(np.mean(per_task[task.split("@")[0]]), color="k", lw=1,
+                                   ls=("--", ":")[k % 2], label=label)
+        axes[0][j].set_title(task, fontsize=10)
+        axes[0][j].tick_params(axis="x", rotation=30)
+        if rows == 2:
+            metric = metric_of[task]
+            if metric:
+                vals = [[np.mean([x[metric] for x in e["metrics"]]) for e in per_method[m]] for m in methods]
+                _seed_bars(axes[1][j], methods, vals, colors)
+                axes[1][j].set_ylabel(metric_label(metric), fontsize=9)
+                axes[1][j].tick_params(axis="x", rotation=30)
+            else:
+                axes[1][j].axis("off")
+    axes[0][0].set_ylabel("zero-shot return")
+    fig.suptitle(f"{title}\nbar: mean over seeds, whiskers: min-max, dots: seeds", fontsize=10)
+    handles, labels = axes[0][-1].get_legend_handles_labels()
+    if handles:  # below the panels: inside one, it covered a bar
+        fig.legend(handles, labels, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
+    written.append(_save(fig, out_dir / f"{prefix}task_returns.png", rect=(0, 0.07 if handles else 0, 1, 1)))
+    return written
+
+
+def _groups_and_titles(groups: dict, warn, where: Path):
+    """Each (env, budget) group with its env entry, title parts and file-name prefix."""
+    from torchrl_softae.pipeline.catalog import get_env_entry
+
+    if len(groups) > 1:
+        warn(f"softae plot: {where} holds {len(groups)} (env, budget) groups; plotting each on its own, never pooled")
+    for (env, episodes, transitions), by_method in sorted(groups.items()):
+        seeds = sorted({len(rs) for rs in by_method.values()})
+        budget = f"{episodes} episodes = {transitions} transitions per run"
+        seed_text = (f"{seeds[0]} seed{'s' * (seeds[0] != 1)}" if len(seeds) == 1
+                     else f"{min(seeds)}-{max(seeds)} seeds")
+        prefix = f"{env}_{transitions}tr_" if len(groups) > 1 else ""
+        yield by_method, get_env_entry(env), env, budget, seed_text, prefix
+
+
 def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> list[Path]:
     """Per env and budget: bars of held-out normalized MSE and zero-shot returns per method over the
     seeds, and one coverage heatmap per method (all its seeds' data), below ``folder/plots``.
     ``only``: plot just these run dirs (``softae report`` passes its finished runs, so its plots
     show what its tables average)."""
-    from torchrl_softae.pipeline.catalog import get_env_entry
-
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
     plt = _plt()
     folder = Path(folder)
@@ -202,80 +286,56 @@ def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> 
     loaded = _load_ok(runs, warn)
     if not loaded:
         raise FileNotFoundError(f"no readable run (checkpoint.pt) below {folder}")
-    budgets: dict[tuple, list] = defaultdict(list)
-    for run, state in loaded:
-        budgets[(state["config"]["env"], state["episode"] + 1, state["num_transitions"])].append((run, state))
-    groups: dict[tuple, dict[str, list]] = {}
-    for key, rs in budgets.items():  # runs of a method that differ in more than the seed stay apart
-        groups[key] = defaultdict(list)
-        for (run, state), label in zip(rs, row_labels([state["config"] for _, state in rs])):
-            groups[key][label].append((run, state))
-    if len(groups) > 1:
-        warn(f"softae plot: {folder} holds {len(groups)} (env, budget) groups; plotting each on its own, never pooled")
+    records = [{"config": state["config"], "episodes": state["episode"] + 1, "transitions": state["num_transitions"],
+                "history": state["history"], "evals": _evals(run), "references": _references(run), "run": run}
+               for run, state in loaded]
     out_dir = folder / "plots"
     out_dir.mkdir(exist_ok=True)
     written = []
-    for (env, episodes, transitions), by_method in sorted(groups.items()):
-        entry = get_env_entry(env)
-        methods = label_order(by_method)
-        seeds = sorted({len(by_method[m]) for m in methods})
-        budget = f"{episodes} episodes = {transitions} transitions per run"
-        seed_text = (f"{seeds[0]} seed{'s' * (seeds[0] != 1)}" if len(seeds) == 1
-                     else f"{min(seeds)}-{max(seeds)} seeds")
-        prefix = f"{env}_{transitions}tr_" if len(groups) > 1 else ""
+    for by_method, entry, env, budget, seed_text, prefix in _groups_and_titles(
+            _group_by_budget_and_label(records), warn, folder):
         title = f"{env}, {budget}, {seed_text}"
-
-        colors = [method_color(m) for m in methods]  # a method's colour in every panel and figure
-        fig, ax = plt.subplots(figsize=(1.3 * len(methods) + 2.5, 4.0))
-        vals = [np.array([s["history"][-1]["heldout_nmse"] for _, s in by_method[m]]) for m in methods]
-        # min-max whiskers: never below a log axis, unlike mean - std
-        _seed_bars(ax, methods, [list(v) for v in vals], colors)
-        ax.set_yscale("log")
-        allv = np.concatenate(vals)
-        ax.set_ylim(allv.min() / 3, allv.max() * 3)  # a decade of room: bar heights stay comparable
-        ax.set_ylabel("held-out normalized MSE")
-        # the env on a line of its own: a figure this narrow cut the one-line title off
-        ax.set_title(f"{env}\n{budget}, {seed_text}\nbar: mean, whiskers: min-max, dots: seeds", fontsize=9)
-        written.append(_save(fig, out_dir / f"{prefix}mse_bars.png"))
-
-        tasks = sorted({t for m in methods for r, _ in by_method[m] for t in _evals(r)})
-        if tasks:
-            metric_of = {t: _success_metric(entry, t) for t in tasks}
-            rows = 2 if any(metric_of.values()) else 1
-            fig, axes = plt.subplots(rows, len(tasks), figsize=(max(3.4 * len(tasks) + 1, 6.5), 3.2 * rows),
-                                     squeeze=False)  # wide enough for the title
-            refs = next((refs for m in methods for r, _ in by_method[m] if (refs := _references(r))), {})
-            for j, task in enumerate(tasks):
-                per_method = {m: [_evals(r)[task] for r, _ in by_method[m] if task in _evals(r)] for m in methods}
-                ret = [[np.mean(e["returns"]) for e in per_method[m]] for m in methods]
-                _seed_bars(axes[0][j], methods, ret, colors)
-                for k, (label, per_task) in enumerate(refs.items()):  # the same episodes without a model
-                    if per_task.get(task.split("@")[0]):
-                        axes[0][j].axhline(np.mean(per_task[task.split("@")[0]]), color="k", lw=1,
-                                           ls=("--", ":")[k % 2], label=label)
-                axes[0][j].set_title(task, fontsize=10)
-                axes[0][j].tick_params(axis="x", rotation=30)
-                if rows == 2:
-                    metric = metric_of[task]
-                    if metric:
-                        vals = [[np.mean([x[metric] for x in e["metrics"]]) for e in per_method[m]] for m in methods]
-                        _seed_bars(axes[1][j], methods, vals, colors)
-                        axes[1][j].set_ylabel(metric_label(metric), fontsize=9)
-                        axes[1][j].tick_params(axis="x", rotation=30)
-                    else:
-                        axes[1][j].axis("off")
-            axes[0][0].set_ylabel("zero-shot return")
-            fig.suptitle(f"{title}\nbar: mean over seeds, whiskers: min-max, dots: seeds", fontsize=10)
-            handles, labels = axes[0][-1].get_legend_handles_labels()
-            if handles:  # below the panels: inside one, it covered a bar
-                fig.legend(handles, labels, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
-            written.append(_save(fig, out_dir / f"{prefix}task_returns.png", rect=(0, 0.07 if handles else 0, 1, 1)))
-
+        written += _comparison_bars(plt, by_method, entry, title, budget, seed_text, out_dir, prefix)
+        methods = label_order(by_method)
         points = {f"{m} ({len(by_method[m])} seed{'s' * (len(by_method[m]) != 1)}, cov. "
-                  f"{np.mean([s['history'][-1]['coverage'] for _, s in by_method[m]]):.2f})":
-                  np.concatenate([_projected(r, entry) for r, _ in by_method[m]]) for m in methods}
+                  f"{np.mean([rec['history'][-1]['coverage'] for rec in by_method[m]]):.2f})":
+                  np.concatenate([_projected(rec["run"], entry) for rec in by_method[m]]) for m in methods}
         written.append(_coverage_panels(points, entry, f"coverage by method: {title}",
                                         out_dir / f"{prefix}coverage_by_method.png"))
+    return written
+
+
+def plot_report(report_json: str | Path, warn=None) -> list[Path]:
+    """The comparison bars (held-out MSE, zero-shot returns) redrawn from a ``softae report``
+    JSON alone, into ``plots/`` beside it: a committed report keeps every run's config, history
+    and evaluations, so its figures outlive the run dirs. The coverage heatmaps need the runs'
+    collected states and are not redrawn (the report's own are kept)."""
+    warn = warn or (lambda msg: print(msg, file=sys.stderr))
+    path = Path(report_json)
+    if not path.is_file():
+        raise FileNotFoundError(f"--report {path} is not a file (expected a report.json written by softae report)")
+    try:
+        runs = json.loads(path.read_text()).get("runs")
+    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        runs = None
+    if not isinstance(runs, list):
+        raise FileNotFoundError(f"--report {path} has no 'runs' archive (a report.json of softae report keeps one "
+                                "since reports archived their runs; an older report cannot be redrawn)")
+    finished = [r for r in runs if r["history"] and len(r["history"]) >= (r["config"].get("episodes") or 0)]
+    if not finished:
+        raise FileNotFoundError(f"--report {path} holds no finished run: nothing to plot")
+    records = [{"config": r["config"], "episodes": len(r["history"]), "transitions": r["history"][-1]["transitions"],
+                "history": r["history"], "evals": {t: e for t, e in r["evals"].items() if t != Path(REFERENCES_FILE).stem},
+                "references": r["evals"].get(Path(REFERENCES_FILE).stem, {}).get("returns", {})}
+               for r in finished]
+    plt = _plt()
+    out_dir = path.parent / "plots"
+    out_dir.mkdir(exist_ok=True)
+    written = []
+    for by_method, entry, env, budget, seed_text, prefix in _groups_and_titles(
+            _group_by_budget_and_label(records), warn, path):
+        written += _comparison_bars(plt, by_method, entry, f"{env}, {budget}, {seed_text}", budget, seed_text,
+                                    out_dir, prefix)
     return written
 
 
