@@ -4,8 +4,10 @@ convolutions through oneDNN, or batched matmuls through MKL/cuBLAS) and whether 
 Which is faster depends on the CPU, not on its vendor (AMD EPYC without AMX: oneDNN's fp32 GEMM
 beats MKL's AVX2 path; Intel with AMX: MKL's fp32 GEMM beats oneDNN's), so each choice is timed
 once on the real shapes at first use and cached for the process and on disk
-(``$TORCHRL_SOFTAE_CACHE/paths.json``, keyed by CPU model, torch version, thread count and the
-candidates), so a resumed run makes the same choice as the run it resumes.
+(``$TORCHRL_SOFTAE_CACHE/paths.json``, keyed by CPU model, torch version, thread count, the
+candidates and how they were timed), so a resumed run makes the same choice as the run it
+resumes. Each candidate is timed in 5 interleaved rounds of at least 2 ms and judged by its best
+round: on a shared host, interference only ever adds time.
 ``SOFTAE_INFERENCE_PATH=conv|conv-fused|bmm``
 (or ``EnsembleWorldModel.inference_path``) fixes it for reproducibility.
 """
@@ -13,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import statistics
 import threading
 import time
 from pathlib import Path
@@ -48,17 +49,29 @@ def _machine() -> str:
     return f"{model}|torch {torch.__version__}|{torch.get_num_threads()} threads"
 
 
-def _once(fn) -> float:
-    t = time.perf_counter()
-    fn()
-    return time.perf_counter() - t
+#: interleaved rounds per candidate; each round repeats a call until it has run this long
+_ROUNDS, _ROUND_SECONDS = 5, 0.002
+#: part of the cache key: choices measured another way (an older, noisier protocol) are measured again
+_PROTOCOL = f"best of {_ROUNDS} rounds"
+
+
+def _per_call(fn) -> float:
+    """Seconds per call of ``fn`` over one round: at least one call, repeated until the round has
+    lasted ``_ROUND_SECONDS`` (a single call of a small network is too short to time)."""
+    calls, t = 0, time.perf_counter()
+    while True:
+        fn()
+        calls += 1
+        elapsed = time.perf_counter() - t
+        if elapsed >= _ROUND_SECONDS:
+            return elapsed / calls
 
 
 def choose(key: str, candidates: dict) -> str:
     """The fastest of ``candidates`` (name -> zero-argument callable) for ``key``: measured once
-    (interleaved rounds, median), then remembered in this process and on disk. A candidate that
+    (interleaved rounds, the best round of each), then remembered in this process and on disk. A candidate that
     raises (a kernel this build or CPU lacks) is not a candidate."""
-    full = f"{_machine()}|{key}|{','.join(candidates)}"
+    full = f"{_machine()}|{key}|{','.join(candidates)}|{_PROTOCOL}"
     with _LOCK:
         if full in _MEMORY:
             return _MEMORY[full]
@@ -82,11 +95,13 @@ def choose(key: str, candidates: dict) -> str:
         if not working:
             raise RuntimeError(f"no candidate of {sorted(candidates)} runs for {key}")
         candidates = working
+        # the best round of each, not the median: on a shared host interference only ever adds
+        # time, and three single calls once made a choice 25 % slower than its rival stick on disk
         times = {name: [] for name in candidates}
-        for _ in range(3):
+        for _ in range(_ROUNDS):
             for name, fn in candidates.items():
-                times[name].append(_once(fn))
-        best = min(times, key=lambda n: statistics.median(times[n]))
+                times[name].append(_per_call(fn))
+        best = min(times, key=lambda n: min(times[n]))
         _MEMORY[full] = best
         try:  # merge with what was written meanwhile (nested choices, other processes)
             disk = json.loads(path.read_text()) if path.exists() else {}
