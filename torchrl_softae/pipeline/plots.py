@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from torchrl_softae.pipeline.methods import METHOD_NAMES, label_order, row_labels
+from torchrl_softae.pipeline.report import is_finished
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, run_dirs_below
 from torchrl_softae.tasks.base import metric_label
 
@@ -185,25 +186,12 @@ def _seed_bars(ax, labels: list[str], values: list[list[float]], color) -> None:
         ax.plot([i] * len(v), v, ".", color="k", ms=4)
 
 
-def _group_by_budget_and_label(records: list[dict]) -> dict[tuple, dict[str, list[dict]]]:
-    """``{(env, episodes, transitions): {row label: [record, ...]}}``: runs of one env and budget
-    side by side, runs of a method that differ in more than the seed apart (``row_labels``)."""
-    budgets: dict[tuple, list] = defaultdict(list)
-    for rec in records:
-        budgets[(rec["config"]["env"], rec["episodes"], rec["transitions"])].append(rec)
-    groups = {}
-    for key, rs in budgets.items():
-        groups[key] = defaultdict(list)
-        for rec, label in zip(rs, row_labels([rec["config"] for rec in rs])):
-            groups[key][label].append(rec)
-    return groups
-
-
-def _comparison_bars(plt, by_method: dict[str, list[dict]], entry, title: str, budget: str, seed_text: str,
+def _comparison_bars(by_method: dict[str, list[dict]], entry, title: str, budget: str, seed_text: str,
                      out_dir: Path, prefix: str) -> list[Path]:
     """The held-out MSE bars and the zero-shot task bars of one (env, budget) group. A record is
     one run's ``history`` (per episode), ``evals`` (task -> evaluation) and ``references``
     (label -> task -> model-free returns)."""
+    plt = _plt()
     env = entry.env_id
     methods = label_order(by_method)
     colors = [method_color(m) for m in methods]  # a method's colour in every panel and figure
@@ -256,19 +244,27 @@ def _comparison_bars(plt, by_method: dict[str, list[dict]], entry, title: str, b
     return written
 
 
-def _groups_and_titles(groups: dict, warn, where: Path):
-    """Each (env, budget) group with its env entry, title parts and file-name prefix."""
+def _budget_groups(records: list[dict], warn, where: Path):
+    """Per (env, budget) of ``records``, in order: the runs by row label (runs of a method that
+    differ in more than the seed apart, ``row_labels``), the env entry, the title and its parts,
+    and the file-name prefix. Never pooled across budgets."""
     from torchrl_softae.pipeline.catalog import get_env_entry
 
-    if len(groups) > 1:
-        warn(f"softae plot: {where} holds {len(groups)} (env, budget) groups; plotting each on its own, never pooled")
-    for (env, episodes, transitions), by_method in sorted(groups.items()):
-        seeds = sorted({len(rs) for rs in by_method.values()})
+    budgets: dict[tuple, list] = defaultdict(list)
+    for rec in records:
+        budgets[(rec["config"]["env"], rec["episodes"], rec["transitions"])].append(rec)
+    if len(budgets) > 1:
+        warn(f"softae plot: {where} holds {len(budgets)} (env, budget) groups; plotting each on its own, never pooled")
+    for (env, episodes, transitions), rs in sorted(budgets.items()):
+        by_method = defaultdict(list)
+        for rec, label in zip(rs, row_labels([rec["config"] for rec in rs])):
+            by_method[label].append(rec)
+        seeds = sorted({len(v) for v in by_method.values()})
         budget = f"{episodes} episodes = {transitions} transitions per run"
         seed_text = (f"{seeds[0]} seed{'s' * (seeds[0] != 1)}" if len(seeds) == 1
                      else f"{min(seeds)}-{max(seeds)} seeds")
-        prefix = f"{env}_{transitions}tr_" if len(groups) > 1 else ""
-        yield by_method, get_env_entry(env), env, budget, seed_text, prefix
+        prefix = f"{env}_{transitions}tr_" if len(budgets) > 1 else ""
+        yield by_method, get_env_entry(env), (f"{env}, {budget}, {seed_text}", budget, seed_text), prefix
 
 
 def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> list[Path]:
@@ -277,7 +273,6 @@ def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> 
     ``only``: plot just these run dirs (``softae report`` passes its finished runs, so its plots
     show what its tables average)."""
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
-    plt = _plt()
     folder = Path(folder)
     runs = _runs_below(folder)
     if only is not None:
@@ -292,10 +287,8 @@ def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> 
     out_dir = folder / "plots"
     out_dir.mkdir(exist_ok=True)
     written = []
-    for by_method, entry, env, budget, seed_text, prefix in _groups_and_titles(
-            _group_by_budget_and_label(records), warn, folder):
-        title = f"{env}, {budget}, {seed_text}"
-        written += _comparison_bars(plt, by_method, entry, title, budget, seed_text, out_dir, prefix)
+    for by_method, entry, (title, budget, seed_text), prefix in _budget_groups(records, warn, folder):
+        written += _comparison_bars(by_method, entry, title, budget, seed_text, out_dir, prefix)
         methods = label_order(by_method)
         points = {f"{m} ({len(by_method[m])} seed{'s' * (len(by_method[m]) != 1)}, cov. "
                   f"{np.mean([rec['history'][-1]['coverage'] for rec in by_method[m]]):.2f})":
@@ -321,21 +314,19 @@ def plot_report(report_json: str | Path, warn=None) -> list[Path]:
     if not isinstance(runs, list):
         raise FileNotFoundError(f"--report {path} has no 'runs' archive (a report.json of softae report keeps one "
                                 "since reports archived their runs; an older report cannot be redrawn)")
-    finished = [r for r in runs if r["history"] and len(r["history"]) >= (r["config"].get("episodes") or 0)]
+    finished = [r for r in runs if is_finished(r)]
     if not finished:
         raise FileNotFoundError(f"--report {path} holds no finished run: nothing to plot")
-    records = [{"config": r["config"], "episodes": len(r["history"]), "transitions": r["history"][-1]["transitions"],
-                "history": r["history"], "evals": {t: e for t, e in r["evals"].items() if t != Path(REFERENCES_FILE).stem},
-                "references": r["evals"].get(Path(REFERENCES_FILE).stem, {}).get("returns", {})}
+    refs = Path(REFERENCES_FILE).stem  # the report archives eval/references.json among the evaluations
+    records = [{"config": r["config"], "episodes": r["episodes_done"], "transitions": r["history"][-1]["transitions"],
+                "history": r["history"], "evals": {t: e for t, e in r["evals"].items() if t != refs},
+                "references": r["evals"].get(refs, {}).get("returns", {})}
                for r in finished]
-    plt = _plt()
     out_dir = path.parent / "plots"
     out_dir.mkdir(exist_ok=True)
     written = []
-    for by_method, entry, env, budget, seed_text, prefix in _groups_and_titles(
-            _group_by_budget_and_label(records), warn, path):
-        written += _comparison_bars(plt, by_method, entry, f"{env}, {budget}, {seed_text}", budget, seed_text,
-                                    out_dir, prefix)
+    for by_method, entry, (title, budget, seed_text), prefix in _budget_groups(records, warn, path):
+        written += _comparison_bars(by_method, entry, title, budget, seed_text, out_dir, prefix)
     return written
 
 

@@ -25,7 +25,7 @@ from torchrl_softae.pipeline.methods import label_order, row_labels
 from torchrl_softae.pipeline.runs import POLICIES_DIR, CheckpointError, RunDir, run_dirs_below
 from torchrl_softae.tasks.base import metric_label
 
-__all__ = ["collect", "report"]
+__all__ = ["collect", "is_finished", "report"]
 
 
 def _fmt(values, digits: int = 4) -> str:
@@ -70,6 +70,12 @@ def collect(root: str | Path, warn=None) -> list[dict]:
     return out
 
 
+def is_finished(run: dict) -> bool:
+    """Whether a run record (of :func:`collect`, or archived in ``report.json``) reached its
+    configured number of episodes: only finished runs are averaged and plotted."""
+    return bool(run["episodes_done"]) and run["episodes_done"] >= (run["episodes_target"] or 0)
+
+
 def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, Path, list]:
     """Build the tables (markdown + JSON) and plots; returns ``(markdown, json path, md path, plots)``."""
     from torchrl_softae.pipeline.catalog import get_env_entry
@@ -78,7 +84,7 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
     runs = collect(root, warn)
     if not runs:
         raise FileNotFoundError(f"no run (config.json) below {root}")
-    finished = [r for r in runs if r["episodes_done"] >= (r["episodes_target"] or 0) and r["episodes_done"]]
+    finished = [r for r in runs if is_finished(r)]
     unfinished = [r for r in runs if r not in finished]
     budgets = defaultdict(list)
     for r in finished:
