@@ -52,7 +52,7 @@ def _machine() -> str:
 #: interleaved rounds per candidate; each round repeats a call until it has run this long
 _ROUNDS, _ROUND_SECONDS = 5, 0.002
 #: part of the cache key: choices measured another way (an older, noisier protocol) are measured again
-_PROTOCOL = f"best of {_ROUNDS} rounds"
+_PROTOCOL = f"best of {_ROUNDS} rounds of {_ROUND_SECONDS * 1e3:g} ms"
 
 
 def _per_call(fn) -> float:
@@ -96,7 +96,7 @@ def choose(key: str, candidates: dict) -> str:
             raise RuntimeError(f"no candidate of {sorted(candidates)} runs for {key}")
         candidates = working
         # the best round of each, not the median: on a shared host interference only ever adds
-        # time, and three single calls once made a choice 25 % slower than its rival stick on disk
+        # time, and three single calls once made a choice 20 % slower than its rival stick on disk
         times = {name: [] for name in candidates}
         for _ in range(_ROUNDS):
             for name, fn in candidates.items():
