@@ -53,7 +53,9 @@ def run_one(env: str, method: str, seed: int, budgets: list[int], any_episodes: 
                           wandb="disabled", task="reach-close" if method == "hucrl" else None)
         run_dir = root / f"{method}-s{seed}"
         t0 = time.time()
-        history = explore(cfg, run_dir, progress=False)
+        # One flushed line per episode: stdout is usually a log file beside a second run.
+        history = explore(cfg, run_dir, progress=False,
+                          echo=lambda line: print(f"{env} {method}-s{seed}: {line}", flush=True))
         t_explore = time.time() - t0
         t0 = time.time()
         fixed = evaluate_run(run_dir, tasks=["reach-close", "reach-far"], episodes=1, seed=0, progress=False)
