@@ -21,13 +21,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from torchrl_softae.pipeline.plots import method_color
+sys.path.insert(0, str(Path(__file__).parent))
+from planning_speed import cpu_description  # noqa: E402
+
+from torchrl_softae.pipeline.plots import method_color  # noqa: E402
 
 #: env -> results folder name (and run dirs' folder under results/runs/)
 SETUPS = {"SoftArm-v1": "arm_v1", "SoftArm136-v1": "arm136_v1"}
@@ -69,6 +73,9 @@ def run_one(env: str, method: str, seed: int, budgets: list[int], any_episodes: 
                              "final_error_mm": [m["final_error_mm"] for m in r["metrics"]],
                              "min_error_mm": [m["min_error_mm"] for m in r["metrics"]]} for name, r in tasks.items()},
             "config": cfg.to_dict(),
+            # With precision=auto and measured kernel choices a seed's actions depend on the CPU's
+            # arithmetic (bf16 or fp32, which GEMM): the same seed on another CPU is another run.
+            "machine": {**cpu_description(), "torch": torch.__version__, "threads": torch.get_num_threads()},
         }
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(result, indent=1, default=float))
