@@ -31,6 +31,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from planning_speed import cpu_description  # noqa: E402
 
+from torchrl_softae.modules import paths  # noqa: E402
 from torchrl_softae.pipeline.plots import method_color  # noqa: E402
 
 #: env -> results folder name (and run dirs' folder under results/runs/)
@@ -73,9 +74,12 @@ def run_one(env: str, method: str, seed: int, budgets: list[int], any_episodes: 
                              "final_error_mm": [m["final_error_mm"] for m in r["metrics"]],
                              "min_error_mm": [m["min_error_mm"] for m in r["metrics"]]} for name, r in tasks.items()},
             "config": cfg.to_dict(),
-            # With precision=auto and measured kernel choices a seed's actions depend on the CPU's
-            # arithmetic (bf16 or fp32, which GEMM): the same seed on another CPU is another run.
-            "machine": {**cpu_description(), "torch": torch.__version__, "threads": torch.get_num_threads()},
+            # With precision=auto and measured kernel choices a seed's actions depend on the
+            # machine's arithmetic (bf16 or fp32, which GEMM, chosen anew where the cache is new):
+            # the same seed with other choices is another run. The choices are this process's (a
+            # resumed run's earlier episodes may have planned with others).
+            "machine": {**cpu_description(), "torch": torch.__version__, "threads": torch.get_num_threads(),
+                        "kernel_choices": paths.choices()},
         }
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(result, indent=1, default=float))

@@ -187,6 +187,8 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
         assert first in ("conv", "conv-fused", "bmm")
         stored = json.loads((tmp_path / "paths.json").read_text())
         assert list(stored.values()) == [first] and "rows 512" in next(iter(stored))
+        (key, choice), = paths.choices().items()  # what a run records: the choice, without the machine
+        assert choice == first and key.startswith("ensemble 5|") and "rows 512" in key
         monkeypatch.setattr(paths, "_MEMORY", {})  # a new process reads the disk: the same choice
         model._path_memo.clear()
         assert model._inference_path(torch.randn(400, 8), torch.float32, None) == first

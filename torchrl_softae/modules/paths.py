@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["choose", "cache_path", "INFERENCE_PATHS"]
+__all__ = ["choose", "choices", "cache_path", "INFERENCE_PATHS"]
 
 #: grouped 1x1 convolutions (oneDNN) with the activation as its own kernel, the same with the
 #: activation fused into the convolution (a oneDNN post-op: one pass over the layer's output
@@ -65,6 +65,14 @@ def _per_call(fn) -> float:
         elapsed = time.perf_counter() - t
         if elapsed >= _ROUND_SECONDS:
             return elapsed / calls
+
+
+def choices() -> dict[str, str]:
+    """The choices this process has made or read so far (key without the machine -> choice): what
+    a run's results depend on besides its seed, since kernels differ in their last bits."""
+    machine = _machine() + "|"
+    with _LOCK:  # another thread may be choosing
+        return {k[len(machine):] if k.startswith(machine) else k: v for k, v in _MEMORY.items()}
 
 
 def choose(key: str, candidates: dict) -> str:
