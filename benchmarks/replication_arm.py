@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -36,6 +37,19 @@ from torchrl_softae.pipeline.plots import method_color  # noqa: E402
 
 #: env -> results folder name (and run dirs' folder under results/runs/)
 SETUPS = {"SoftArm-v1": "arm_v1", "SoftArm136-v1": "arm136_v1"}
+
+
+def code_version() -> dict:
+    """The commit that wrote this result (and whether the tree had uncommitted changes; a resumed
+    run may have started on an earlier one): the code's arithmetic
+    can change between commits without changing the method (e.g. Adam's fused kernel)."""
+    def git(*args):
+        try:
+            return subprocess.run(["git", *args], cwd=Path(__file__).parent, capture_output=True, text=True,
+                                  timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+    return {"commit": git("rev-parse", "HEAD") or None, "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
 
 
 def results_dir(env: str) -> Path:
@@ -80,6 +94,7 @@ def run_one(env: str, method: str, seed: int, budgets: list[int], any_episodes: 
             # resumed run's earlier episodes may have planned with others).
             "machine": {**cpu_description(), "torch": torch.__version__, "threads": torch.get_num_threads(),
                         "kernel_choices": paths.choices()},
+            "code": code_version(),
         }
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(result, indent=1, default=float))

@@ -253,6 +253,62 @@ def test_packed_conv_weights_match(monkeypatch):
     assert not torch.allclose(before, after)
 
 
+@pytest.mark.parametrize("path", ["conv-fused", "bmm"])
+def test_cached_inference_weights_follow_fused_optimizer_steps_copies_and_moves(path):
+    """A fused optimizer step updates the parameters without moving their version counters, and
+    ``.to()`` swaps their storage: the cast/packed inference weights must follow both, also for a
+    deep copy, or the model plans with its weights from before training."""
+    import copy
+
+    torch.manual_seed(0)
+    obs, act = torch.randn(64, 3), torch.randn(64, 2)
+    td = TensorDict({"observation": obs, "action": act, ("next", "observation"): obs + 1.0}, [64])
+
+    def cached_and_fresh(m):
+        with torch.no_grad():
+            cached = m.predict_members(obs, act)[0]
+            m.clear_inference_cache()
+            return cached, m.predict_members(obs, act)[0]
+
+    model = _model().eval()
+    model.inference_path = path
+    for m in (model, copy.deepcopy(model)):
+        m.inference_path = path
+        start, _ = cached_and_fresh(m)  # fills the cache
+        optimizer = torch.optim.Adam(m.parameters(), lr=1e-2, fused=True)
+        for _ in range(3):
+            optimizer.zero_grad()
+            EnsembleLoss(m)(td)["loss_model"].backward()
+            optimizer.step()
+        cached, fresh = cached_and_fresh(m)
+        assert (cached - start).abs().max() > 1e-3  # training moved the predictions
+        torch.testing.assert_close(cached, fresh, rtol=0, atol=0)
+    # storage swapped by .to() (here a round trip through float64): the cache must not serve the old one
+    with torch.no_grad():
+        model.predict_members(obs, act)
+        model.to(torch.float64).to(torch.float32)
+        for layer in model.layers:
+            layer.weight.data.mul_(0.5)  # through .data: detected only by the storage, not the version
+        model.to(torch.float64).to(torch.float32)
+        cached, fresh = cached_and_fresh(model)
+    torch.testing.assert_close(cached, fresh, rtol=0, atol=0)
+
+
+def test_trainer_uses_fused_adam_on_cpu_with_the_same_updates():
+    torch.manual_seed(0)
+    obs = torch.randn(200, 3)
+    td = TensorDict({"observation": obs, "action": torch.randn(200, 2), ("next", "observation"): obs.sin()}, [200])
+    params = {}
+    for fused in (None, False):
+        torch.manual_seed(1)
+        trainer = EnsembleTrainer(EnsembleLoss(_model()), lr=1e-3, epochs=3, fused=fused)
+        assert trainer.fused is (fused is None)
+        report = trainer.fit(td)
+        params[fused] = torch.cat([p.detach().flatten() for p in trainer.model.parameters()])
+        assert report.val_mse[-1] < report.val_mse[0]
+    torch.testing.assert_close(params[None], params[False], rtol=1e-4, atol=1e-5)
+
+
 def test_auto_precision_is_fp32_where_bf16_is_not_native(monkeypatch):
     from torchrl_softae.modules import precision
 
