@@ -3,6 +3,7 @@
     python benchmarks/replication_arm.py --runs softae:0 random:0 random:1 --threads 1
     python benchmarks/replication_arm.py --table          # the table from every finished result
     python benchmarks/replication_arm.py --plot           # nMSE vs episode, returns vs budget
+    python benchmarks/replication_arm.py --coverage 50    # tip heatmaps by method at a budget
 
 Each ``METHOD:SEED`` explores ``SoftArm-v1`` (or ``--env SoftArm136-v1``, Fig. 3C) at the paper's model, training and iCEM settings
 (Tables S6, S7; the ``paper`` preset), ``planner.precision=auto`` (bf16 where the CPU has native
@@ -55,7 +56,44 @@ def code_version() -> dict:
 def results_dir(env: str) -> Path:
     return Path(__file__).parent / "results" / SETUPS[env]
 TASKS = ["reach-close", "reach-far", "reach-any"]
+#: bins per axis of the tip histogram in each result; twice the coverage metric's 20, so pooling
+#: 2 x 2 cells gives back the metric's grid (checked against the recorded coverage)
+HIST_BINS = 40
+COVERAGE_BINS = 20
 PAPER = {"random": 0.2397, "hucrl": 0.7232, "softae": 0.0526}
+
+
+def tip_histogram(env: str, run_dir: Path, heldout_size: int) -> dict:
+    """Transitions per tip cell (x, z) of every transition in ``run_dir``, on the env's fixed
+    coverage grid at ``HIST_BINS`` per axis: the heatmaps are drawn from the results, not the run dirs."""
+    from torchrl_softae.pipeline.catalog import get_env_entry
+    from torchrl_softae.pipeline.data import coverage_counts, heldout_set, projection_bounds
+    from torchrl_softae.pipeline.runs import RunDir
+
+    entry, run = get_env_entry(env), RunDir(run_dir)
+    state = run.load()
+    rb = run.load_replay_buffer(state)
+    bounds = projection_bounds(entry, heldout_set(entry, run, heldout_size))
+    counts = coverage_counts(entry, rb.storage[: len(rb)], bounds, HIST_BINS)
+    return {"bins": HIST_BINS, "bounds": bounds.tolist(), "labels": list(entry.projection_labels),
+            "transitions": len(rb), "counts": counts.tolist()}
+
+
+def pooled_coverage(hist: dict) -> float:
+    """The coverage metric (share of visited cells of the ``COVERAGE_BINS`` grid) from a tip histogram."""
+    c = np.asarray(hist["counts"])
+    k = hist["bins"] // COVERAGE_BINS
+    pooled = c.reshape(COVERAGE_BINS, k, COVERAGE_BINS, k).sum((1, 3))
+    return float((pooled > 0).sum()) / COVERAGE_BINS**2
+
+
+def check_histogram(result: dict, hist: dict) -> None:
+    """A histogram belongs to a result only if it holds its transitions and gives its coverage."""
+    want = result["history"][-1]
+    if hist["transitions"] != want["transitions"] or abs(pooled_coverage(hist) - want["coverage"]) > 1e-9:
+        raise ValueError(f"{result['method']}-s{result['seed']}-ep{result['episodes']}: the run dir holds "
+                         f"{hist['transitions']} transitions with coverage {pooled_coverage(hist):.4f}, the result "
+                         f"{want['transitions']} with {want['coverage']:.4f}: not the same data")
 
 
 def run_one(env: str, method: str, seed: int, budgets: list[int], any_episodes: int, root: Path,
@@ -95,7 +133,9 @@ def run_one(env: str, method: str, seed: int, budgets: list[int], any_episodes: 
             "machine": {**cpu_description(), "torch": torch.__version__, "threads": torch.get_num_threads(),
                         "kernel_choices": paths.choices()},
             "code": code_version(),
+            "tip_histogram": tip_histogram(env, run_dir, cfg.heldout_size),
         }
+        check_histogram(result, result["tip_histogram"])
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(result, indent=1, default=float))
         print(f"{out.name}: nmse {result['accuracy']['heldout_nmse']:.4g}, "
@@ -199,6 +239,59 @@ def plot(env: str) -> Path | None:
     return path
 
 
+def add_histograms(env: str, root: Path) -> list[str]:
+    """Adds the tip histogram to every result that lacks one and whose run dir below ``root``
+    (``METHOD-sSEED``) holds exactly its transitions and coverage (checked); returns what it did."""
+    done = []
+    for path in sorted(results_dir(env).glob("*.json")):
+        result = json.loads(path.read_text())
+        run_dir = root / f"{result['method']}-s{result['seed']}"
+        if "tip_histogram" in result or not (run_dir / "checkpoint.pt").exists():
+            continue
+        hist = tip_histogram(env, run_dir, result["config"]["heldout_size"])
+        if hist["transitions"] != result["transitions"]:
+            continue  # the run dir is at another budget
+        check_histogram(result, hist)
+        result["tip_histogram"] = hist
+        path.write_text(json.dumps(result, indent=1, default=float))
+        done.append(f"{path.name}: tip histogram from {run_dir}")
+    return done
+
+
+def plot_coverage(env: str, budget: int) -> Path | None:
+    """Tip heatmaps by method at ``budget`` episodes (transitions per cell, averaged over the
+    method's seeds so methods with different seed counts compare) on the env's fixed grid with one
+    colour scale, the targets of (i) and (ii) marked, from the results that carry a tip histogram."""
+    from torchrl_softae.pipeline.catalog import get_env_entry
+    from torchrl_softae.pipeline.methods import METHOD_NAMES
+    from torchrl_softae.pipeline.plots import coverage_heatmaps
+
+    rows = [json.loads(p.read_text()) for p in sorted(results_dir(env).glob(f"*-ep{budget}.json"))]
+    rows = [r for r in rows if "tip_histogram" in r]
+    if not rows:
+        return None
+    counts, first = {}, rows[0]["tip_histogram"]
+    for m in [m for m in METHOD_NAMES if any(r["method"] == m for r in rows)]:
+        rs = sorted((r for r in rows if r["method"] == m), key=lambda r: r["seed"])
+        if any(r["tip_histogram"]["bounds"] != first["bounds"] for r in rs):
+            raise ValueError(f"{env}: tip histograms on different grids: held-out sets differ between results")
+        label = (f"{m} (seed{'s' * (len(rs) > 1)} {','.join(str(r['seed']) for r in rs)}; cov. "
+                 f"{np.mean([r['history'][-1]['coverage'] for r in rs]):.2f})")
+        counts[label] = np.mean([np.asarray(r["tip_histogram"]["counts"]) for r in rs], 0)
+    (x0, z0), (x1, z1) = first["bounds"]
+    edges = [np.linspace(x0, x1, first["bins"] + 1), np.linspace(z0, z1, first["bins"] + 1)]
+    tasks = get_env_entry(env).tasks
+    targets = {f"{tag} {name}": (tasks[name].params["target"][0], tasks[name].params["target"][2])
+               for tag, name in (("(i)", "reach-close"), ("(ii)", "reach-far")) if name in tasks}
+    path = results_dir(env).parent / "plots" / f"{env}_coverage_{budget}ep.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return coverage_heatmaps(counts, edges, first["labels"],
+                             f"{env}: tip positions visited in {budget} exploration episodes "
+                             f"({rows[0]['transitions']} transitions per seed)\ngrid: the held-out targets' range; "
+                             "edge cells also hold what lies beyond", path,
+                             unit="transitions per cell (mean over seeds)", markers=targets)
+
+
 def main():
     from torchrl_softae.pipeline.cli import plain_output
 
@@ -213,17 +306,34 @@ def main():
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--table", action="store_true", help="print the table of finished results and exit")
     p.add_argument("--plot", action="store_true", help="draw nMSE vs episode and returns vs budget, and exit")
+    p.add_argument("--coverage", type=int, metavar="BUDGET", help="draw the tip heatmaps by method at BUDGET, and exit")
+    p.add_argument("--add-histograms", action="store_true",
+                   help="add tip histograms to results that lack one, from run dirs below --root, and exit")
     args = p.parse_args()
+    from torchrl_softae.pipeline.methods import METHOD_NAMES
+
+    runs = []
+    for item in args.runs:
+        method, _, seed = item.partition(":")
+        if method not in METHOD_NAMES or not seed.isdigit():
+            p.error(f"--runs {item!r}: expected METHOD:SEED with METHOD one of {', '.join(METHOD_NAMES)} "
+                    "and SEED a non-negative integer")
+        runs.append((method, int(seed)))
+    root = Path(args.root) if args.root else Path(__file__).parent / "results" / "runs" / SETUPS[args.env]
+    if args.add_histograms:
+        print("\n".join(add_histograms(args.env, root)) or "no result gained a histogram")
+        return
+    if args.coverage is not None:
+        print(plot_coverage(args.env, args.coverage) or f"no result at {args.coverage} episodes has a tip histogram")
+        return
     if args.table or args.plot:
         print(table(args.env))
         if args.plot:
             print(plot(args.env))
         return
     torch.set_num_threads(args.threads)
-    root = Path(args.root) if args.root else Path(__file__).parent / "results" / "runs" / SETUPS[args.env]
-    for item in args.runs:
-        method, seed = item.split(":")
-        run_one(args.env, method, int(seed), args.budgets, args.any_episodes, root, args.overrides)
+    for method, seed in runs:
+        run_one(args.env, method, seed, args.budgets, args.any_episodes, root, args.overrides)
     print(table(args.env))
 
 

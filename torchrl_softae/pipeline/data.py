@@ -18,7 +18,7 @@ from torchrl_softae.pipeline.runs import RunDir, atomic_torch_save
 from torchrl_softae.seeding import derive_seed
 
 __all__ = ["make_real_env", "episode_seed", "seed_everything", "heldout_set", "reference_set", "reference_scale",
-           "normalized_mse", "trivial_nmse", "legacy_normalized_mse", "coverage", "ModelAccuracy"]
+           "normalized_mse", "trivial_nmse", "legacy_normalized_mse", "coverage", "coverage_counts", "projection_bounds", "ModelAccuracy"]
 
 
 def make_real_env(entry: EnvEntry, max_steps: int) -> EnvBase:
@@ -134,16 +134,28 @@ def legacy_normalized_mse(model: EnsembleWorldModel, heldout: TensorDictBase) ->
     return float(((mu - nxt) / std).square().mean())
 
 
-def coverage(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: int = 20) -> float:
-    """Fraction of cells of a ``bins x bins`` grid over the env's projection that the data visits."""
+def projection_bounds(entry: EnvEntry, heldout: TensorDictBase) -> torch.Tensor:
+    """``(2, 2)``: low and high corners of the coverage grid, the held-out set's projection padded
+    by 5 % (fixed per env, so every run of the env is binned on the same grid)."""
+    p = entry.project(heldout)
+    lo, hi = p.min(0).values, p.max(0).values
+    pad = 0.05 * (hi - lo).clamp_min(1e-6)
+    return torch.stack([lo - pad, hi + pad])
+
+
+def coverage_counts(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: int = 20) -> torch.Tensor:
+    """``(bins, bins)`` int64: transitions per cell of a grid over the env's projection between
+    ``bounds`` (axis 0 the projection's first coordinate); points outside count in the edge cells."""
     p = entry.project(data)
     p = p[torch.isfinite(p).all(-1)]
-    if p.shape[0] == 0:
-        return 0.0
     lo, hi = bounds[0], bounds[1]
     idx = ((p - lo) / (hi - lo) * bins).floor().clamp(0, bins - 1).long()
-    cells = torch.unique(idx[:, 0] * bins + idx[:, 1])
-    return cells.numel() / bins**2
+    return torch.bincount(idx[:, 0] * bins + idx[:, 1], minlength=bins * bins).reshape(bins, bins)
+
+
+def coverage(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: int = 20) -> float:
+    """Fraction of cells of a ``bins x bins`` grid over the env's projection that the data visits."""
+    return int((coverage_counts(entry, data, bounds, bins) > 0).sum()) / bins**2
 
 
 class ModelAccuracy:

@@ -25,7 +25,7 @@ from torchrl_softae.pipeline.builders import build_exploration_policy, build_wor
 from torchrl_softae.pipeline.catalog import get_env_entry
 from torchrl_softae.pipeline.config import ConfigError, ExploreConfig, flat_config
 from torchrl_softae.pipeline.data import (ModelAccuracy, coverage, episode_seed, heldout_set, make_real_env,
-                                          normalized_mse, seed_everything)
+                                          normalized_mse, projection_bounds, seed_everything)
 from torchrl_softae.pipeline.evaluate import zero_shot
 from torchrl_softae.pipeline.methods import get_method
 from torchrl_softae.pipeline.policy import build_policy_learner
@@ -144,7 +144,7 @@ class Explorer:
         else:
             rb = self.run.new_replay_buffer(capacity)
         accuracy = ModelAccuracy(self.entry, self.run, cfg.heldout_size)
-        bounds = self._projection_bounds(accuracy.heldout)
+        bounds = projection_bounds(self.entry, accuracy.heldout)
         logger = self._logger(wandb_id)
 
         bar = None
@@ -190,12 +190,6 @@ class Explorer:
             env.close()
         self.model, self.replay_buffer, self.history = model, rb, history
         return history
-
-    def _projection_bounds(self, heldout: TensorDictBase) -> torch.Tensor:
-        p = self.entry.project(heldout)
-        lo, hi = p.min(0).values, p.max(0).values
-        pad = 0.05 * (hi - lo).clamp_min(1e-6)
-        return torch.stack([lo - pad, hi + pad])
 
     # ------------------------------------------------------------------ one episode
     def _episode(self, n, env, model, trainer, rb, accuracy, bounds, learner=None) -> dict:

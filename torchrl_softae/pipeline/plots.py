@@ -20,7 +20,7 @@ from torchrl_softae.pipeline.report import is_finished
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, run_dirs_below
 from torchrl_softae.tasks.base import metric_label
 
-__all__ = ["plot_run", "plot_comparison", "plot_report", "plot_path"]
+__all__ = ["plot_run", "plot_comparison", "plot_report", "plot_path", "coverage_heatmaps"]
 
 
 def _plt():
@@ -48,28 +48,43 @@ def _projected(run: RunDir, entry) -> np.ndarray:
 
 
 def _coverage_panels(points: dict, entry, title: str, path: Path, bins: int = 40) -> Path:
-    """One heatmap per label, all on the same bins and the same (log) colour scale, one colour bar."""
-    from matplotlib.colors import LogNorm
-
-    plt = _plt()
+    """One heatmap per label of ``points`` (``(N, 2)`` projected states), binned on one grid over
+    all of them."""
     allp = np.concatenate(list(points.values()))
     lo, hi = allp.min(0), allp.max(0)
     pad = 0.02 * np.maximum(hi - lo, 1e-9)
     edges = [np.linspace(lo[i] - pad[i], hi[i] + pad[i], bins + 1) for i in range(2)]
     counts = {k: np.histogram2d(p[:, 0], p[:, 1], bins=edges)[0] for k, p in points.items()}
+    return coverage_heatmaps(counts, edges, entry.projection_labels, title, path)
+
+
+def coverage_heatmaps(counts: dict, edges, axis_labels, title: str, path: Path,
+                      unit: str = "transitions per cell", markers: dict | None = None) -> Path:
+    """One heatmap per label of ``counts`` (``(bins_x, bins_y)`` per cell, all on the grid
+    ``edges = (x_edges, y_edges)``), on the same (log) colour scale, one colour bar labelled
+    ``unit``; ``markers`` (``{label: (x, y)}``, e.g. task targets) are drawn on every panel."""
+    from matplotlib.colors import LogNorm
+
+    plt = _plt()
+    counts = {k: np.asarray(c, dtype=float) for k, c in counts.items()}
     vmax = max(c.max() for c in counts.values())
-    n = len(points)
+    vmin = min(c[c > 0].min() for c in counts.values() if (c > 0).any())
+    n = len(counts)
     fig, axes = plt.subplots(1, n, figsize=(3.4 * n + 1.2, 3.7), squeeze=False, sharex=True, sharey=True)
     fig.subplots_adjust(top=0.82)  # room for the figure title above the panel titles
     mesh = None
     for ax, (label, c) in zip(axes[0], counts.items()):
         mesh = ax.pcolormesh(edges[0], edges[1], np.where(c > 0, c, np.nan).T, cmap="viridis",
-                             norm=LogNorm(vmin=1, vmax=max(vmax, 2)))
+                             norm=LogNorm(vmin=min(vmin, 1), vmax=max(vmax, 2)))
+        for j, (name, (x, y)) in enumerate((markers or {}).items()):
+            ax.plot(x, y, marker="*X^sD"[j % 5], ms=10, mfc="red", mec="white", ls="none", label=name)
         ax.set_title(label, fontsize=10)
-        ax.set_xlabel(entry.projection_labels[0])
-    axes[0][0].set_ylabel(entry.projection_labels[1])
+        ax.set_xlabel(axis_labels[0])
+    axes[0][0].set_ylabel(axis_labels[1])
+    if markers:
+        axes[0][0].legend(fontsize=7, loc="lower left")
     fig.suptitle(title, fontsize=11)
-    fig.colorbar(mesh, ax=axes[0].tolist(), label="transitions per cell", fraction=0.04, pad=0.02)
+    fig.colorbar(mesh, ax=axes[0].tolist(), label=unit, fraction=0.04, pad=0.02)
     fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return path
