@@ -283,7 +283,7 @@ def plot_coverage(env: str, budget: int) -> Path | None:
     tasks = get_env_entry(env).tasks
     targets = {f"{tag} {name}": (tasks[name].params["target"][0], tasks[name].params["target"][2])
                for tag, name in (("(i)", "reach-close"), ("(ii)", "reach-far")) if name in tasks}
-    path = results_dir(env).parent / "plots" / f"{env}_coverage_{budget}ep.png"
+    path = results_dir(env).parent / "plots" / f"{env}_tip_coverage_{budget}ep.png"
     path.parent.mkdir(parents=True, exist_ok=True)
     return coverage_heatmaps(counts, edges, first["labels"],
                              f"{env}: tip positions visited in {budget} exploration episodes "

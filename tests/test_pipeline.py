@@ -278,4 +278,4 @@ def test_result_histograms_pool_to_the_recorded_coverage_and_refuse_other_data(t
     (tmp_path / "results" / "pendulum").mkdir(parents=True)
     (tmp_path / "results" / "pendulum" / "random-s0-ep2.json").write_text(json.dumps({**result, "tip_histogram": hist}))
     path = ra.plot_coverage("Pendulum-v1", 2)
-    assert path.name == "Pendulum-v1_coverage_2ep.png" and path.stat().st_size > 1000
+    assert path.name == "Pendulum-v1_tip_coverage_2ep.png" and path.stat().st_size > 1000
