@@ -252,7 +252,7 @@ def add_histograms(env: str, root: Path) -> list[str]:
         if hist["transitions"] != result["transitions"]:
             continue  # the run dir is at another budget
         check_histogram(result, hist)
-        result["tip_histogram"] = hist
+        result["tip_histogram"] = {**hist, "source": f"added from the run dir {run_dir.name} (--add-histograms)"}
         path.write_text(json.dumps(result, indent=1, default=float))
         done.append(f"{path.name}: tip histogram from {run_dir}")
     return done
