@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from planning_speed import cpu_description  # noqa: E402
 
 from torchrl_softae.modules import paths  # noqa: E402
+from torchrl_softae.pipeline.data import COVERAGE_BINS  # noqa: E402
 from torchrl_softae.pipeline.plots import method_color  # noqa: E402
 
 #: env -> results folder name (and run dirs' folder under results/runs/)
@@ -56,10 +57,9 @@ def code_version() -> dict:
 def results_dir(env: str) -> Path:
     return Path(__file__).parent / "results" / SETUPS[env]
 TASKS = ["reach-close", "reach-far", "reach-any"]
-#: bins per axis of the tip histogram in each result; twice the coverage metric's 20, so pooling
+#: bins per axis of the tip histogram in each result; twice the coverage metric's, so pooling
 #: 2 x 2 cells gives back the metric's grid (checked against the recorded coverage)
-HIST_BINS = 40
-COVERAGE_BINS = 20
+HIST_BINS = 2 * COVERAGE_BINS
 PAPER = {"random": 0.2397, "hucrl": 0.7232, "softae": 0.0526}
 
 

@@ -18,7 +18,7 @@ from torchrl_softae.pipeline.runs import RunDir, atomic_torch_save
 from torchrl_softae.seeding import derive_seed
 
 __all__ = ["make_real_env", "episode_seed", "seed_everything", "heldout_set", "reference_set", "reference_scale",
-           "normalized_mse", "trivial_nmse", "legacy_normalized_mse", "coverage", "coverage_counts", "projection_bounds", "ModelAccuracy"]
+           "normalized_mse", "trivial_nmse", "legacy_normalized_mse", "coverage", "coverage_counts", "projection_bounds", "COVERAGE_BINS", "ModelAccuracy"]
 
 
 def make_real_env(entry: EnvEntry, max_steps: int) -> EnvBase:
@@ -134,6 +134,10 @@ def legacy_normalized_mse(model: EnsembleWorldModel, heldout: TensorDictBase) ->
     return float(((mu - nxt) / std).square().mean())
 
 
+#: cells per axis of the coverage grid (the ``coverage`` in every run's history)
+COVERAGE_BINS = 20
+
+
 def projection_bounds(entry: EnvEntry, heldout: TensorDictBase) -> torch.Tensor:
     """``(2, 2)``: low and high corners of the coverage grid, the held-out set's projection padded
     by 5 % (fixed per env, so every run of the env is binned on the same grid)."""
@@ -143,7 +147,7 @@ def projection_bounds(entry: EnvEntry, heldout: TensorDictBase) -> torch.Tensor:
     return torch.stack([lo - pad, hi + pad])
 
 
-def coverage_counts(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: int = 20) -> torch.Tensor:
+def coverage_counts(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: int = COVERAGE_BINS) -> torch.Tensor:
     """``(bins, bins)`` int64: transitions per cell of a grid over the env's projection between
     ``bounds`` (axis 0 the projection's first coordinate); points outside count in the edge cells."""
     p = entry.project(data)
@@ -153,7 +157,7 @@ def coverage_counts(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor,
     return torch.bincount(idx[:, 0] * bins + idx[:, 1], minlength=bins * bins).reshape(bins, bins)
 
 
-def coverage(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: int = 20) -> float:
+def coverage(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: int = COVERAGE_BINS) -> float:
     """Fraction of cells of a ``bins x bins`` grid over the env's projection that the data visits."""
     return int((coverage_counts(entry, data, bounds, bins) > 0).sum()) / bins**2
 

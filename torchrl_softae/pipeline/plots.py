@@ -68,7 +68,7 @@ def coverage_heatmaps(counts: dict, edges, axis_labels, title: str, path: Path,
     plt = _plt()
     counts = {k: np.asarray(c, dtype=float) for k, c in counts.items()}
     vmax = max(c.max() for c in counts.values())
-    vmin = min(c[c > 0].min() for c in counts.values() if (c > 0).any())
+    vmin = min((c[c > 0].min() for c in counts.values() if (c > 0).any()), default=1.0)
     n = len(counts)
     fig, axes = plt.subplots(1, n, figsize=(3.4 * n + 1.2, 3.7), squeeze=False, sharex=True, sharey=True)
     fig.subplots_adjust(top=0.82)  # room for the figure title above the panel titles
