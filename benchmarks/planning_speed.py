@@ -20,12 +20,13 @@ reported as median and best, so a noisy machine cannot make one ratio out of one
   icem-bf16-dedup   same with bf16 hidden layers
   icem-deadline     SoftAE bf16 with a 50 ms wall-clock budget per action
   ...@PATH          (--compare-paths) the four icem rows with the ensemble's inference path fixed
-                    (conv, conv-fused, bmm) instead of measured at first use
+                    (each of EnsembleWorldModel.available_inference_paths()) instead of measured at first use
 
 ``--layer-costs`` also times ONE hidden layer (L=5 members, 256 -> 256) at the planner's row counts
 (206 = 200 candidates + 6 kept elites with one particle, 2060 with ten): the GEMM alone
-(batched matmul), its SiLU alone (in place), and both in one oneDNN call (grouped convolution with
-the SiLU as a post-op), fp32 and bf16, interleaved. Where the activation costs about as much as
+(batched matmul), its SiLU alone (in place: torch's, and the compiled kernel where it was built),
+and both in one oneDNN call (grouped convolution with the SiLU as a post-op), fp32 and bf16,
+interleaved. Where the activation costs about as much as
 the GEMM, no GEMM speed-up can make the layer much faster: "layer bf16/fp32" is the bound.
 
 ``--loop-overhead`` times one SoftAE candidate evaluation (``evaluate_action_sequences``, one
@@ -57,7 +58,7 @@ from torchrl.modules import CEMPlanner
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
 from torchrl_softae.modules.ensemble import ensemble_std
-from torchrl_softae.modules.paths import INFERENCE_PATHS
+from torchrl_softae.modules import silu_kernel
 from torchrl_softae.modules.precision import cpu_flags
 
 SHAPES = [  # (name, d_s, d_a, H)
@@ -138,6 +139,8 @@ def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256) -> list
             name = "bf16" if dtype == torch.bfloat16 else "fp32"
             jobs[(label, name, "gemm")] = lambda x=x, w=w: torch.bmm(x, w)
             jobs[(label, name, "silu")] = lambda y=y: F.silu(y, inplace=True)
+            if silu_kernel.available():
+                jobs[(label, name, "silukernel")] = lambda y=y: silu_kernel.silu_(y)
             if hasattr(torch.ops.mkldnn, "_convolution_pointwise"):
                 jobs[(label, name, "fused")] = lambda xc=xc, wc=wc, bc=bc: torch.ops.mkldnn._convolution_pointwise(
                     xc, wc, bc, [0, 0], [1, 1], [1, 1], L, "swish", [], "")
@@ -155,7 +158,7 @@ def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256) -> list
     for label, n in rows_of.items():
         row = {"rows": n, "particles": label}
         for name in ("fp32", "bf16"):
-            for part in ("gemm", "silu", "fused"):
+            for part in ("gemm", "silu", "silukernel", "fused"):
                 if (label, name, part) in times:
                     row[f"{name}_{part}_us"] = 1e6 * statistics.median(times[(label, name, part)])
         out.append(row)
@@ -163,14 +166,20 @@ def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256) -> list
 
 
 def print_layer_costs(rows: list[dict]) -> None:
-    print("\n| one hidden layer (5 x 256 -> 256) | rows | fp32 GEMM / SiLU / fused [us] | bf16 GEMM / SiLU / fused [us] "
-          "| SiLU share of a bf16 layer | GEMM bf16/fp32 | layer bf16/fp32 |")
+    """SiLU share and layer ratio with the fastest SiLU of each dtype (torch's or the kernel)."""
+    parts = ("gemm", "silu", "silukernel", "fused")
+    print("\n| one hidden layer (5 x 256 -> 256) | rows | fp32 GEMM / SiLU torch / SiLU kernel / fused [us] "
+          "| bf16 GEMM / SiLU torch / SiLU kernel / fused [us] | SiLU share of a bf16 layer (fastest SiLU) "
+          "| GEMM bf16/fp32 | layer bf16/fp32 (fastest SiLU each) |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
-        def trio(name):
-            return " / ".join(f"{r[k]:.0f}" if (k := f"{name}_{p}_us") in r else "-" for p in ("gemm", "silu", "fused"))
-        g32, s32, g16, s16 = r["fp32_gemm_us"], r["fp32_silu_us"], r["bf16_gemm_us"], r["bf16_silu_us"]
-        print(f"| {r['particles']} | {r['rows']} | {trio('fp32')} | {trio('bf16')} | {100 * s16 / (g16 + s16):.0f}% "
+        def cols(name):
+            return " / ".join(f"{r[k]:.0f}" if (k := f"{name}_{p}_us") in r else "-" for p in parts)
+
+        def silu(name):
+            return min(r[k] for k in (f"{name}_silu_us", f"{name}_silukernel_us") if k in r)
+        g32, s32, g16, s16 = r["fp32_gemm_us"], silu("fp32"), r["bf16_gemm_us"], silu("bf16")
+        print(f"| {r['particles']} | {r['rows']} | {cols('fp32')} | {cols('bf16')} | {100 * s16 / (g16 + s16):.0f}% "
               f"| {g32 / g16:.2f}x | {(g32 + s32) / (g16 + s16):.2f}x |")
 
 
@@ -292,7 +301,7 @@ def main():
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--compare-paths", action="store_true",
-                   help="also time the icem rows with each inference path fixed (conv, conv-fused, bmm)")
+                   help="also time the icem rows with each inference path fixed (every available one)")
     p.add_argument("--layer-costs", action="store_true",
                    help="also time one hidden layer's GEMM, SiLU and fused GEMM + SiLU at the planner's row counts")
     p.add_argument("--loop-overhead", action="store_true",
@@ -311,6 +320,7 @@ def main():
     print(f"# planning_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}")
     print("GEMM peaks (2048^3, best of 10) [GFLOP/s]: " + ", ".join(f"{k} {v:.0f}" for k, v in pk.items()))
+    print(f"compiled SiLU kernel: {silu_kernel.isa() or 'not built (torch SiLU only)'}")
     try:
         import mbrl  # noqa: F401
 
@@ -318,7 +328,8 @@ def main():
     except Exception as e:  # noqa: BLE001
         have_mbrl = False
         print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} (pip install --no-deps mbrl==0.2.0 hydra-core omegaconf termcolor)")
-    results = {"cpu": cpu, "peaks_gflops": pk, "threads": args.threads, "repeats": repeats, "rows": []}
+    results = {"cpu": cpu, "peaks_gflops": pk, "silu_kernel_isa": silu_kernel.isa(), "threads": args.threads,
+               "repeats": repeats, "rows": []}
     print("\n| shape | planner | median ms | best ms | vs CEMPlanner (median) | % of peak (its dtype) |")
     print("|---|---|---|---|---|---|")
     for name, d_s, d_a, H in shapes:
@@ -340,7 +351,7 @@ def main():
         path_of = {}  # contender -> the inference path it runs with ("auto": measured at first use)
         if args.compare_paths:
             for key in ("icem-fp32-full", "icem-bf16-full", "icem-fp32-dedup", "icem-bf16-dedup"):
-                for path in INFERENCE_PATHS:
+                for path in model.available_inference_paths():
                     env = sample_env if "full" in key else opt_env
                     prec = "bf16" if "bf16" in key else "fp32"
                     planners[f"{key}@{path}"] = (ICEMPlanner(env, precision=prec, **icem), prec, None)

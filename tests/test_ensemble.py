@@ -6,6 +6,7 @@ from tensordict import TensorDict
 
 from torchrl_softae.modules import EnsembleWorldModel, ensemble_std
 from torchrl_softae.modules import ensemble as ensemble_module
+from torchrl_softae.modules import silu_kernel
 from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 
 
@@ -184,7 +185,7 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
     x = torch.randn(300, 8)
     with torch.no_grad():
         first = model._inference_path(x, torch.float32, None)
-        assert first in ("conv", "conv-fused", "bmm")
+        assert first in paths.INFERENCE_PATHS
         stored = json.loads((tmp_path / "paths.json").read_text())
         assert list(stored.values()) == [first] and "rows 512" in next(iter(stored))
         (key, choice), = paths.choices().items()  # what a run records: the choice, without the machine
@@ -192,16 +193,54 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
         monkeypatch.setattr(paths, "_MEMORY", {})  # a new process reads the disk: the same choice
         model._path_memo.clear()
         assert model._inference_path(torch.randn(400, 8), torch.float32, None) == first
-        for forced in ("conv", "conv-fused", "bmm"):
+        usable = model.available_inference_paths()
+        assert usable == (paths.INFERENCE_PATHS if silu_kernel.available() else ("conv", "conv-fused", "bmm"))
+        for forced in usable:
             monkeypatch.setenv("SOFTAE_INFERENCE_PATH", forced)
             assert model._inference_path(x, torch.float32, None) == forced
         monkeypatch.delenv("SOFTAE_INFERENCE_PATH")
         outs = {}
-        for path in ("bmm", "conv", "conv-fused"):
+        for path in usable:
             model.inference_path = path
             outs[path] = model.network(model.input_normalizer.normalize(x))[0]
-        torch.testing.assert_close(outs["conv"], outs["bmm"], rtol=1e-4, atol=1e-5)  # the same function either way
-        torch.testing.assert_close(outs["conv-fused"], outs["bmm"], rtol=1e-4, atol=1e-5)
+        for path in usable:  # the same function either way
+            torch.testing.assert_close(outs[path], outs["bmm"], rtol=1e-4, atol=1e-5)
+    relu = EnsembleWorldModel(6, 2, num_cells=32, depth=2, activation_class=torch.nn.ReLU).eval()
+    relu.inference_path = "conv-silu-kernel"
+    with torch.no_grad(), pytest.raises(RuntimeError, match="'conv-silu-kernel' needs nn.SiLU"):
+        relu.network(x)
+
+
+@pytest.mark.skipif(not silu_kernel.available(), reason="the compiled SiLU was not built (no C compiler at install)")
+def test_compiled_silu_matches_torch_in_fp32_and_bf16_on_every_layout():
+    """The kernel on every instruction set this CPU has: fp32 within a few 1e-7 relative of
+    torch's SiLU, bf16 the same bits for these inputs (both round the same fp32 value), non-finite
+    values as torch; tails shorter than a vector, several threads and a channels-last 4-D buffer
+    (the convolution path's) included; tensors it cannot take fall back to torch's."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.cat([torch.randn(40_000, generator=g) * 4, torch.linspace(-30, 30, 1001),
+                   torch.tensor([0.0, -0.0, float("inf"), float("nan"), 1e-30, -1e-30])])
+    ref = torch.nn.functional.silu(x)
+    best = silu_kernel.isa()
+    assert best == silu_kernel.supported_isas()[-1] and "portable" in silu_kernel.supported_isas()
+    try:
+        for isa in silu_kernel.supported_isas():
+            silu_kernel.use_isa(isa)
+            for n in (x.numel(), 17, 5):  # a long buffer over several threads' chunks, and short tails
+                got = silu_kernel.silu_(x[:n].clone())
+                torch.testing.assert_close(got, ref[:n], rtol=1e-6, atol=1e-30, equal_nan=True, msg=isa)
+                xb = x[:n].bfloat16()
+                ref_b = torch.nn.functional.silu(xb.float()).bfloat16()
+                assert torch.equal(silu_kernel.silu_(xb.clone()).view(torch.int16), ref_b.view(torch.int16)), isa
+            img = x[:4096].reshape(1, 64, 64, 1).to(memory_format=torch.channels_last)
+            torch.testing.assert_close(silu_kernel.silu_(img.clone()), torch.nn.functional.silu(img),
+                                       rtol=1e-6, atol=1e-30, msg=isa)
+    finally:
+        silu_kernel.use_isa(best)
+    strided = x[:200].clone()[::2]  # not one dense block: torch's SiLU
+    assert torch.equal(silu_kernel.silu_(strided), torch.nn.functional.silu(x[:200][::2]))
+    with pytest.raises(ValueError, match="'sse9' is not one of this CPU's"):
+        silu_kernel.use_isa("sse9")
 
 
 @pytest.mark.parametrize("activation", [torch.nn.SiLU, torch.nn.ReLU, torch.nn.Tanh, torch.nn.ELU])

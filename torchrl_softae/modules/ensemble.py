@@ -27,6 +27,7 @@ from torch.nn import functional as F
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from torchrl_softae.modules import paths
+from torchrl_softae.modules import silu_kernel as _silu_kernel
 from torchrl_softae.modules.paths import INFERENCE_PATHS
 from torchrl_softae.modules.precision import resolve_planning_dtype
 
@@ -379,18 +380,26 @@ class EnsembleWorldModel(TensorDictModuleBase):
             lowp = self.planning_dtype or torch.float32
             cols = None if (want_logvar or not self.probabilistic) else d  # both heads in one matmul
             path = self._inference_path(x, lowp, cols) if x.dim() == 2 else "bmm"
-            if path != "bmm":
-                y = self._network_grouped_conv(x, lowp, cols, fused=path == "conv-fused")
+            silu_kernel = path.endswith("-silu-kernel")
+            if path.startswith("conv"):
+                y = self._network_grouped_conv(x, lowp, cols, fused=path == "conv-fused", silu_kernel=silu_kernel)
             else:
-                y = self._network_bmm(x, lowp, cols)
+                y = self._network_bmm(x, lowp, cols, silu_kernel=silu_kernel)
         if not want_logvar:
             return y[..., :d], None
         return y[..., :d], (self._bound_logvar(y[..., d:]) if bound_logvar else y[..., d:])
 
-    #: ``"auto"`` (measured once per device, dtype and row count; see :mod:`torchrl_softae.modules.paths`),
-    #: ``"conv"``, ``"conv-fused"`` or ``"bmm"``; the environment variable ``SOFTAE_INFERENCE_PATH``
-    #: sets the default
+    #: ``"auto"`` (measured once per device, dtype and row count; see :mod:`torchrl_softae.modules.paths`)
+    #: or one of :data:`~torchrl_softae.modules.paths.INFERENCE_PATHS`; the environment variable
+    #: ``SOFTAE_INFERENCE_PATH`` sets the default
     inference_path: str = "auto"
+
+    def available_inference_paths(self) -> tuple[str, ...]:
+        """The inference paths this model can run here: the compiled-SiLU ones need ``nn.SiLU`` and
+        the kernel built (:mod:`.silu_kernel`)."""
+        if self._silu_kernel_applies():
+            return INFERENCE_PATHS
+        return tuple(p for p in INFERENCE_PATHS if not p.endswith("-silu-kernel"))
 
     def _inference_path(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> str:
         """Grouped convolutions (oneDNN, CPU only) or batched matmuls for a shared ``(N, in)`` input."""
@@ -398,6 +407,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
             return "bmm"
         forced = self.inference_path if self.inference_path != "auto" else os.environ.get("SOFTAE_INFERENCE_PATH", "auto")
         if forced in INFERENCE_PATHS:
+            if forced not in self.available_inference_paths():
+                raise RuntimeError(f"inference path {forced!r} needs nn.SiLU and the compiled kernel "
+                                   f"(activation {type(self.activation).__name__}, kernel built: {_silu_kernel.available()})")
             return forced
         rows = _row_bucket(x.shape[0])
         memo = (dtype, rows, cols, torch.get_num_threads())
@@ -413,6 +425,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
         if self._fused_activation() is not None:
             candidates["conv-fused"] = lambda: self._network_grouped_conv(probe, dtype, cols, fused=True)
         candidates["bmm"] = lambda: self._network_bmm(probe, dtype, cols)
+        if self._silu_kernel_applies():
+            candidates["conv-silu-kernel"] = lambda: self._network_grouped_conv(probe, dtype, cols, silu_kernel=True)
+            candidates["bmm-silu-kernel"] = lambda: self._network_bmm(probe, dtype, cols, silu_kernel=True)
         self._path_memo[memo] = paths.choose(key, candidates)
         return self._path_memo[memo]
 
@@ -447,7 +462,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         return self._path_memo[memo]
 
     def _network_grouped_conv(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None,
-                              fused: bool = False) -> torch.Tensor:
+                              fused: bool = False, silu_kernel: bool = False) -> torch.Tensor:
         """Inference on a shared ``(N, in)`` input: the ensemble as grouped 1x1 convolutions.
 
         The ``N`` rows are the pixels of a channels-last ``(1, C, N, 1)`` image whose channels are
@@ -461,6 +476,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         ``fused``: the hidden activation runs inside the convolution (a oneDNN post-op,
         :meth:`_fused_activation`): the layer's output is written once, already activated; in bf16
         the separate activation pass cost a third of a plan on a CPU with AMX.
+        ``silu_kernel``: the separate activation pass by the compiled SiLU (:mod:`.silu_kernel`).
 
         Returns the ``(L, N, out)`` output as a view of an ``(N, L, out)`` buffer.
         """
@@ -479,7 +495,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
             else:
                 h = F.conv2d(h, w, b, groups=groups)
             if i < last and fuse is None:
-                h = self._activate_(h)
+                h = self._activate_(h, silu_kernel)
         # (1, L * out, N, 1) channels-last is an (N, L * out) buffer: view it as (L, N, out)
         return h.squeeze(0).squeeze(-1).t().reshape(n, L, -1).transpose(0, 1).float()
 
@@ -508,7 +524,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
 
         return self._cached(layer, ("conv", dtype, cols, bucket), build)
 
-    def _network_bmm(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
+    def _network_bmm(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None,
+                     silu_kernel: bool = False) -> torch.Tensor:
         """Inference with batched matmuls: ``x`` ``(N, in)`` shared or ``(L, N, in)`` per member."""
         L = self.ensemble_size
         hidden = self.layers[:-1]
@@ -518,7 +535,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
             n = x.shape[0]
             w, b = self._stacked_first_layer(dtype)
             x = torch.addmm(b, x.to(dtype), w).view(n, L, -1).transpose(0, 1).contiguous()
-            x = self._activate_(x)
+            x = self._activate_(x, silu_kernel)
             hidden = hidden[1:]
         n = x.shape[1]
         # (bf16 bmm kernels are not batch-parallel in the same way: splitting does not pay)
@@ -526,7 +543,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         x = x.reshape(L * k, n // k, x.shape[-1])
         for layer in hidden:
             w, b = self._inference_weights(layer, dtype, k, None)
-            x = self._activate_(torch.baddbmm(b, x.to(dtype), w))
+            x = self._activate_(torch.baddbmm(b, x.to(dtype), w), silu_kernel)
         # All layers in reduced precision when asked (matmuls accumulate in fp32; the outputs
         # round to bf16): test_bf16_ranking_matches_fp32 checks that sigma-driven returns keep
         # their ranking (Spearman >= 0.95) on a trained model.
@@ -541,9 +558,15 @@ class EnsembleWorldModel(TensorDictModuleBase):
         return {nn.SiLU: "swish", nn.ReLU: "relu", nn.Tanh: "tanh", nn.Hardswish: "hardswish",
                 nn.Sigmoid: "sigmoid"}.get(type(self.activation))
 
-    def _activate_(self, x: torch.Tensor) -> torch.Tensor:
+    def _silu_kernel_applies(self) -> bool:
+        return type(self.activation) is nn.SiLU and _silu_kernel.available()
+
+    def _activate_(self, x: torch.Tensor, silu_kernel: bool = False) -> torch.Tensor:
         """Activation in place on a fresh matmul output (inference only): a second large
-        allocation per layer cost more than the bf16 SiLU itself (measured)."""
+        allocation per layer cost more than the bf16 SiLU itself (measured). ``silu_kernel``: by
+        the compiled SiLU (only on a path that measured faster with it)."""
+        if silu_kernel:
+            return _silu_kernel.silu_(x)
         fn = {nn.SiLU: F.silu, nn.ReLU: F.relu, nn.ELU: F.elu, nn.Hardswish: F.hardswish}.get(type(self.activation))
         return fn(x, inplace=True) if fn is not None else self.activation(x)
 

@@ -8,7 +8,7 @@ once on the real shapes at first use and cached for the process and on disk
 candidates and how they were timed), so a resumed run makes the same choice as the run it
 resumes. Each candidate is timed in 5 interleaved rounds of at least 2 ms and judged by its best
 round: on a shared host, interference only ever adds time.
-``SOFTAE_INFERENCE_PATH=conv|conv-fused|bmm``
+``SOFTAE_INFERENCE_PATH=conv|conv-fused|bmm|conv-silu-kernel|bmm-silu-kernel``
 (or ``EnsembleWorldModel.inference_path``) fixes it for reproducibility.
 """
 from __future__ import annotations
@@ -25,8 +25,9 @@ __all__ = ["choose", "choices", "cache_path", "INFERENCE_PATHS"]
 
 #: grouped 1x1 convolutions (oneDNN) with the activation as its own kernel, the same with the
 #: activation fused into the convolution (a oneDNN post-op: one pass over the layer's output
-#: instead of two), batched matmuls
-INFERENCE_PATHS = ("conv", "conv-fused", "bmm")
+#: instead of two), batched matmuls; and the two unfused ones with the SiLU by the compiled kernel
+#: (torchrl_softae/csrc/silu.c; candidates only where it was built and the activation is SiLU)
+INFERENCE_PATHS = ("conv", "conv-fused", "bmm", "conv-silu-kernel", "bmm-silu-kernel")
 _LOCK = threading.RLock()  # re-entrant: a measured candidate may itself make a measured choice
 _MEMORY: dict[str, str] = {}
 

@@ -1,0 +1,231 @@
+/* SiLU in place, y = x / (1 + exp(-x)), for the ensemble's inference layers (fp32 and bf16).
+ *
+ * Why: in a bf16 plan on a CPU with AMX, torch's SiLU costs as much as the layer's GEMM and runs no
+ * faster in bf16 than in fp32 (it widens to fp32 and calls an accurate vectorized exp); on AMD
+ * EPYC with AVX512-BF16 it is 2-2.6x slower than this kernel (benchmarks/planning_speed.py
+ * --layer-costs). Here exp is 2^k times a polynomial (fp32 results within 1e-6 relative of
+ * torch's; bf16 outputs round from the same fp32 value as torch's).
+ *
+ * Built at install time as the optional extension torchrl_softae.modules._silu (pyproject.toml);
+ * where it does not build, or where it is not faster, the ensemble uses torch's SiLU: the inference
+ * path is measured, never assumed (torchrl_softae/modules/paths.py). The instruction set is chosen
+ * at run time (AVX512-BF16, AVX-512F, else portable C), so one build runs on every x86-64 CPU.
+ * OpenMP threads: the extension links libgomp.so.1, and imported after torch it shares torch's
+ * (same soname), so the kernel runs on torch's own thread pool.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
+#define SOFTAE_X86 1
+#endif
+
+enum { DTYPE_FLOAT32 = 0, DTYPE_BFLOAT16 = 1 };
+
+/* ------------------------------------------------------------------ portable C */
+static inline float bf16_to_float(uint16_t h) {
+    uint32_t u = (uint32_t)h << 16;
+    float f;
+    memcpy(&f, &u, 4);
+    return f;
+}
+
+static inline uint16_t float_to_bf16(float f) { /* round to nearest even, NaN stays NaN */
+    uint32_t u;
+    memcpy(&u, &f, 4);
+    if ((u & 0x7fffffffu) > 0x7f800000u) return (uint16_t)((u >> 16) | 0x40u);
+    u += 0x7fffu + ((u >> 16) & 1u);
+    return (uint16_t)(u >> 16);
+}
+
+static void silu_f32_portable(float *x, int64_t n) {
+    for (int64_t i = 0; i < n; i++) x[i] = x[i] / (1.0f + expf(-x[i]));
+}
+
+static void silu_bf16_portable(uint16_t *x, int64_t n) {
+    for (int64_t i = 0; i < n; i++) {
+        float v = bf16_to_float(x[i]);
+        x[i] = float_to_bf16(v / (1.0f + expf(-v)));
+    }
+}
+
+/* ------------------------------------------------------------------ AVX-512 */
+#ifdef SOFTAE_X86
+__attribute__((target("avx512f"))) static inline __m512 exp_avx512(__m512 x) {
+    /* exp(x) = 2^k e^r, k = round(x log2 e), r = x - k ln 2 in two parts (Cody-Waite: exact
+     * enough that large |x| keep fp32 accuracy), |r| <= ln2 / 2; e^r by its Taylor polynomial of
+     * degree 7 (truncation below 2e-8 relative); scalef applies 2^k without overflowing */
+    x = _mm512_max_ps(_mm512_min_ps(x, _mm512_set1_ps(88.0f)), _mm512_set1_ps(-87.0f));
+    __m512 k = _mm512_roundscale_ps(_mm512_mul_ps(x, _mm512_set1_ps(1.44269504088896341f)),
+                                    _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    __m512 r = _mm512_fnmadd_ps(k, _mm512_set1_ps(0.693359375f), x);
+    r = _mm512_fnmadd_ps(k, _mm512_set1_ps(-2.12194440e-4f), r);
+    __m512 p = _mm512_set1_ps(1.0f / 5040.0f);
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(1.0f / 720.0f));
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(1.0f / 120.0f));
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(1.0f / 24.0f));
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(1.0f / 6.0f));
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(0.5f));
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(1.0f));
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(1.0f));
+    return _mm512_scalef_ps(p, k);
+}
+
+__attribute__((target("avx512f"))) static inline __m512 silu_avx512(__m512 v) {
+    __m512 e = exp_avx512(_mm512_sub_ps(_mm512_setzero_ps(), v));
+    return _mm512_div_ps(v, _mm512_add_ps(_mm512_set1_ps(1.0f), e));
+}
+
+__attribute__((target("avx512f"))) static void silu_f32_avx512(float *x, int64_t n) {
+    int64_t i = 0;
+    for (; i + 16 <= n; i += 16) _mm512_storeu_ps(x + i, silu_avx512(_mm512_loadu_ps(x + i)));
+    if (i < n) {
+        __mmask16 m = (__mmask16)((1u << (n - i)) - 1u);
+        _mm512_mask_storeu_ps(x + i, m, silu_avx512(_mm512_maskz_loadu_ps(m, x + i)));
+    }
+}
+
+__attribute__((target("avx512f,avx512bw"))) static inline __m512 bf16x16_to_f32(__m256i h) {
+    return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(h), 16));
+}
+
+/* without AVX512-BF16: round to nearest even in integers (NaN inputs give NaN through x) */
+__attribute__((target("avx512f,avx512bw"))) static void silu_bf16_avx512(uint16_t *x, int64_t n) {
+    int64_t i = 0;
+    for (; i + 16 <= n; i += 16) {
+        __m512i u = _mm512_castps_si512(silu_avx512(bf16x16_to_f32(_mm256_loadu_si256((const __m256i *)(x + i)))));
+        __m512i lsb = _mm512_and_si512(_mm512_srli_epi32(u, 16), _mm512_set1_epi32(1));
+        u = _mm512_add_epi32(u, _mm512_add_epi32(lsb, _mm512_set1_epi32(0x7fff)));
+        _mm256_storeu_si256((__m256i *)(x + i), _mm512_cvtepi32_epi16(_mm512_srli_epi32(u, 16)));
+    }
+    if (i < n) silu_bf16_portable(x + i, n - i);
+}
+
+/* with AVX512-BF16: the CPU's own round-to-nearest-even conversion (2x fewer instructions) */
+__attribute__((target("avx512f,avx512bw,avx512bf16"))) static void silu_bf16_avx512bf16(uint16_t *x, int64_t n) {
+    int64_t i = 0;
+    for (; i + 16 <= n; i += 16) {
+        __m256bh o = _mm512_cvtneps_pbh(silu_avx512(bf16x16_to_f32(_mm256_loadu_si256((const __m256i *)(x + i)))));
+        _mm256_storeu_si256((__m256i *)(x + i), (__m256i)o);
+    }
+    if (i < n) silu_bf16_portable(x + i, n - i);
+}
+#endif
+
+/* ------------------------------------------------------------------ dispatch */
+typedef void (*silu_fn)(void *, int64_t);
+typedef struct {
+    const char *name;
+    silu_fn f32, bf16;
+    int supported;
+} variant;
+
+static variant VARIANTS[] = {
+    {"portable", (silu_fn)silu_f32_portable, (silu_fn)silu_bf16_portable, 1},
+#ifdef SOFTAE_X86
+    {"avx512f", (silu_fn)silu_f32_avx512, (silu_fn)silu_bf16_avx512, 0},
+    {"avx512bf16", (silu_fn)silu_f32_avx512, (silu_fn)silu_bf16_avx512bf16, 0},
+#endif
+};
+#define N_VARIANTS ((int)(sizeof(VARIANTS) / sizeof(VARIANTS[0])))
+static int CURRENT = 0;
+
+static void detect(void) { /* the best variant this CPU runs, in the order of VARIANTS */
+#ifdef SOFTAE_X86
+    __builtin_cpu_init();
+    /* libgcc's feature bits include the OS check (XCR0) that the AVX-512 state is enabled */
+    VARIANTS[1].supported = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw");
+    VARIANTS[2].supported = VARIANTS[1].supported && __builtin_cpu_supports("avx512bf16");
+#endif
+    for (int i = 0; i < N_VARIANTS; i++)
+        if (VARIANTS[i].supported) CURRENT = i;
+}
+
+/* rows of work per thread chunk: large enough that a chunk is not all scheduling, a multiple of 16 */
+#define CHUNK ((int64_t)16384)
+
+static void silu_parallel(char *x, int64_t n, int dtype, int threads) {
+    const int64_t size = dtype == DTYPE_FLOAT32 ? 4 : 2;
+    const int64_t chunks = (n + CHUNK - 1) / CHUNK;
+    silu_fn fn = dtype == DTYPE_FLOAT32 ? VARIANTS[CURRENT].f32 : VARIANTS[CURRENT].bf16;
+    (void)threads;
+#pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1 && chunks > 1)
+    for (int64_t c = 0; c < chunks; c++) {
+        int64_t start = c * CHUNK;
+        int64_t len = n - start < CHUNK ? n - start : CHUNK;
+        fn(x + start * size, len);
+    }
+}
+
+static PyObject *silu_(PyObject *self, PyObject *args) {
+    unsigned long long address;
+    long long n;
+    int dtype, threads;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "KLii", &address, &n, &dtype, &threads)) return NULL;
+    if (dtype != DTYPE_FLOAT32 && dtype != DTYPE_BFLOAT16) {
+        PyErr_Format(PyExc_ValueError, "silu_: dtype code %d, expected 0 (float32) or 1 (bfloat16)", dtype);
+        return NULL;
+    }
+    if (n < 0 || (n > 0 && address == 0)) {
+        PyErr_Format(PyExc_ValueError, "silu_: %lld elements at address %llu", n, address);
+        return NULL;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    silu_parallel((char *)(uintptr_t)address, (int64_t)n, dtype, threads < 1 ? 1 : threads);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+static PyObject *isa(PyObject *self, PyObject *unused) {
+    (void)self;
+    (void)unused;
+    return PyUnicode_FromString(VARIANTS[CURRENT].name);
+}
+
+static PyObject *supported_isas(PyObject *self, PyObject *unused) {
+    (void)self;
+    (void)unused;
+    PyObject *out = PyList_New(0);
+    for (int i = 0; out != NULL && i < N_VARIANTS; i++) {
+        if (!VARIANTS[i].supported) continue;
+        PyObject *name = PyUnicode_FromString(VARIANTS[i].name);
+        if (name == NULL || PyList_Append(out, name) < 0) Py_CLEAR(out);
+        Py_XDECREF(name);
+    }
+    return out;
+}
+
+static PyObject *use_isa(PyObject *self, PyObject *args) {
+    const char *name;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "s", &name)) return NULL;
+    for (int i = 0; i < N_VARIANTS; i++) {
+        if (strcmp(VARIANTS[i].name, name) == 0 && VARIANTS[i].supported) {
+            CURRENT = i;
+            Py_RETURN_NONE;
+        }
+    }
+    PyErr_Format(PyExc_ValueError, "use_isa: %s is not an instruction set this CPU runs the kernel on", name);
+    return NULL;
+}
+
+static PyMethodDef METHODS[] = {
+    {"silu_", silu_, METH_VARARGS,
+     "silu_(address, n, dtype, threads): SiLU in place on n contiguous elements (dtype 0 float32, 1 bfloat16)"},
+    {"isa", isa, METH_NOARGS, "the instruction set the kernel runs on: avx512bf16, avx512f or portable"},
+    {"supported_isas", supported_isas, METH_NOARGS, "the instruction sets this CPU can run the kernel on"},
+    {"use_isa", use_isa, METH_VARARGS, "use_isa(name): run on this instruction set (one of supported_isas())"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef MODULE = {PyModuleDef_HEAD_INIT, "_silu", "SiLU in place (fp32, bf16)", -1, METHODS, NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__silu(void) {
+    detect();
+    return PyModule_Create(&MODULE);
+}
