@@ -160,37 +160,58 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         action: torch.Tensor,
         eta: torch.Tensor | None = None,
         member_index: torch.Tensor | None = None,
+        particles: int = 1,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """One model step on plain tensors: returns ``(s', sigma)``, both ``(*B, d_s)``."""
-        return self._propagate(observation, action, eta, member_index)
+        """One model step on plain tensors: returns ``(s', sigma)``, both ``(*B, d_s)``.
 
-    def _mean_and_sigma(self, observation, action, member_index=None):
-        members, ale = self.world_model.predict_members(
-            observation, action, with_aleatoric=self.aleatoric_noise, member_index=member_index)
+        ``particles`` > 1: ``observation``, ``action`` (and ``eta``) are ``(*B, 1, d)``, shared by
+        that many particles (``member_index`` ``(*B, particles)``), and the outputs are ``(*B,
+        particles, d_s)``: the ensemble runs once for them all; what differs between the particles
+        (their member, their noise) is applied after. The same values as ``particles`` copies of
+        the inputs, at ``1 / particles`` of the network's cost."""
+        return self._propagate(observation, action, eta, member_index, particles)
+
+    def _mean_and_sigma(self, observation, action, member_index=None, particles=1):
+        """Members ``(L, *B, d_s)``, mu and sigma ``(*B, d_s)`` and the aleatoric std (of the
+        particle's member ``(*B, d_s)`` with ``member_index``, else ``(L, *B, d_s)``)."""
+        if particles == 1:
+            members, ale = self.world_model.predict_members(
+                observation, action, with_aleatoric=self.aleatoric_noise, member_index=member_index)
+            mu = members.mean(0)
+            return members, mu, ensemble_std(members, mu), ale
+        members, ale = self.world_model.predict_members(observation, action, with_aleatoric=self.aleatoric_noise)
         mu = members.mean(0)
-        return members, mu, ensemble_std(members, mu), ale
+        sigma = ensemble_std(members, mu)
+        shape = (*mu.shape[:-2], particles, mu.shape[-1])
+        members, mu, sigma = members.expand(members.shape[0], *shape), mu.expand(shape), sigma.expand(shape)
+        if ale is not None:
+            ale = ale.expand(members.shape)
+            if member_index is not None:
+                ale = ale.gather(0, member_index.reshape(1, *shape[:-1], 1).expand(1, *shape)).squeeze(0)
+        return members, mu, sigma, ale
 
     def _with_noise(self, nxt, noise_std):
         return nxt if noise_std is None else nxt + noise_std * self._randn(nxt.shape, nxt)
 
-    def _propagate_mean(self, observation, action, eta, member_index):
-        _, mu, sigma, ale = self._mean_and_sigma(observation, action)
+    def _propagate_mean(self, observation, action, eta, member_index, particles=1):
+        _, mu, sigma, ale = self._mean_and_sigma(observation, action, particles=particles)
         return self._with_noise(mu, None if ale is None else ale.square().mean(0).sqrt()), sigma
 
-    def _propagate_optimistic(self, observation, action, eta, member_index):
-        _, mu, sigma, ale = self._mean_and_sigma(observation, action)
+    def _propagate_optimistic(self, observation, action, eta, member_index, particles=1):
+        _, mu, sigma, ale = self._mean_and_sigma(observation, action, particles=particles)
         if eta is None:
             raise KeyError("mode='optimistic' needs the hallucinated control 'eta' in the tensordict")
-        if eta.shape != mu.shape:
+        if eta.shape != mu.shape and (particles == 1 or eta.shape != (*mu.shape[:-2], 1, mu.shape[-1])):
             raise ValueError(f"'eta' has shape {tuple(eta.shape)}, expected {tuple(mu.shape)}")
         nxt = torch.addcmul(mu, sigma, eta)
         return self._with_noise(nxt, None if ale is None else ale.square().mean(0).sqrt()), sigma
 
-    def _propagate_sample(self, observation, action, eta, member_index):
+    def _propagate_sample(self, observation, action, eta, member_index, particles=1):
         if member_index is None:
-            member_index = torch.randint(self.world_model.ensemble_size, observation.shape[:-1],
+            shape = observation.shape[:-1] if particles == 1 else (*observation.shape[:-2], particles)
+            member_index = torch.randint(self.world_model.ensemble_size, shape,
                                          generator=self._generator, device=observation.device)
-        members, mu, sigma, ale = self._mean_and_sigma(observation, action, member_index)
+        members, mu, sigma, ale = self._mean_and_sigma(observation, action, member_index, particles)
         idx = member_index.reshape(1, *mu.shape[:-1], 1).expand(1, *mu.shape)
         # trajectory sampling: ``ale`` is already the assigned member's
         return self._with_noise(members.gather(0, idx).squeeze(0), ale), sigma
@@ -268,7 +289,9 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         e.g. :class:`~torchrl_softae.envs.transforms.HallucinatedControl`, and set the reward,
         e.g. :class:`~torchrl_softae.envs.transforms.UncertaintyReward`). With ``num_particles``
         > 1 in ``"sample"`` mode every particle keeps one member for the whole horizon (TS-inf),
-        members spread evenly over a candidate's particles from a random offset.
+        members spread evenly over a candidate's particles from a random offset; at the first step
+        a candidate's particles share its state and action, so the ensemble runs once for them
+        (``propagate(..., particles=P)``) and only the member choice and the noise differ.
         """
         env = self if env is None else env
         B, N, H, d = action_sequences.shape
@@ -307,13 +330,19 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     def _returns_on_tensors(self, stack, obs, acts, member) -> torch.Tensor:
         """The horizon loop on plain tensors (no TensorDict, no spec work per step): the same
         arithmetic as stepping the TorchRL stack (``test_tensor_loop_matches_the_torchrl_stack``)."""
-        H = acts.shape[-2]
+        P, H = acts.shape[-3], acts.shape[-2]
         ret = torch.zeros(*obs.shape[:-1], 1, device=obs.device)
         for h in range(H):
-            entries = {"action": acts[..., h, :]}
+            # at h = 0 a candidate's particles share its start state and first action: one model
+            # call serves them all (1 / H of a stochastic plan's network work)
+            shared = P if h == 0 and P > 1 else 1
+            entries = {"action": acts[..., :1, h, :] if shared > 1 else acts[..., h, :]}
             for t in reversed(stack):  # inverse transforms run outermost first, as in TorchRL
                 entries = t.plan_action(entries)
-            nxt, sigma = self.propagate(obs, entries["action"], entries.get("eta"), member)
+            nxt, sigma = self.propagate(obs[..., :1, :] if shared > 1 else obs, entries["action"],
+                                        entries.get("eta"), member, particles=shared)
+            if shared > 1:
+                entries = {k: v.expand(*nxt.shape[:-1], v.shape[-1]) for k, v in entries.items()}
             reward = torch.zeros_like(ret)
             for t in stack:
                 reward = t.plan_reward(obs, entries["action"], nxt, sigma, reward)
