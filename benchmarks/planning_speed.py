@@ -36,8 +36,9 @@ against its network calls alone: what the horizon loop costs beyond the model.
 Prints the CPU (vendor, AVX-512, AVX512-BF16, AMX), the GEMM peaks of every path measured in the
 same run (MKL ``a @ b`` and oneDNN 1x1 convolution, fp32 and bf16), and "% of peak" against the
 best peak of the dtype each planner's hidden layers use. Results: stdout and
-benchmarks/results/planning_speed-KIND.json (KIND: amx, avx512-bf16 or no-bf16). mbrl-lib: ``pip install --no-deps mbrl==0.2.0 hydra-core
-omegaconf termcolor``.
+benchmarks/results/planning_speed-KIND.json (KIND: amx, avx512-bf16 or no-bf16). mbrl-lib (its own pins are from 2021, hence
+``--no-deps`` for it alone; hydra-core brings the omegaconf and antlr4 it needs):
+``pip install --no-deps mbrl==0.2.0 && pip install hydra-core termcolor`` (:data:`MBRL_INSTALL`).
 """
 from __future__ import annotations
 
@@ -69,6 +70,9 @@ SHAPES = [  # (name, d_s, d_a, H)
     ("sopra32-H5", 32, 6, 5),
 ]
 P, K, I, N = 200, 20, 5, 10
+#: how to install the mbrl-lib anchor (measured on 2026-12-02: ``--no-deps`` on hydra-core too took
+#: omegaconf 2.4 and antlr4 4.13, and hydra's import failed)
+MBRL_INSTALL = "pip install --no-deps mbrl==0.2.0 && pip install hydra-core termcolor"
 KEPT = math.ceil(0.3 * K)  # iCEM adds xi * K kept elites to its P samples
 
 
@@ -254,9 +258,13 @@ def print_loop_overhead(rows: list[dict]) -> None:
               f"| {100 * r['network_ms'] / r['ours_ms']:.0f}% |")
 
 
-def flops_per_action(model, rows, H, iters):
+def flops_per_action(model, rows, H, iters, first_rows=None):
+    """FLOPs of the ensemble in one action: ``rows`` model rows per horizon step, ``first_rows`` at
+    the first step (where our planner runs a candidate's particles once: they share its state and
+    action), ``iters`` iterations."""
     per_row = sum(2 * layer.in_features * layer.out_features for layer in model.layers) * model.ensemble_size
-    return per_row * rows * H * iters
+    first_rows = rows if first_rows is None else first_rows
+    return per_row * (first_rows + rows * (H - 1)) * iters
 
 
 class MbrlIcem:
@@ -327,7 +335,7 @@ def main():
         have_mbrl = True
     except Exception as e:  # noqa: BLE001
         have_mbrl = False
-        print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} (pip install --no-deps mbrl==0.2.0 hydra-core omegaconf termcolor)")
+        print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} ({MBRL_INSTALL})")
     results = {"cpu": cpu, "peaks_gflops": pk, "silu_kernel_isa": silu_kernel.isa(), "threads": args.threads,
                "repeats": repeats, "rows": []}
     print("\n| shape | planner | median ms | best ms | vs CEMPlanner (median) | % of peak (its dtype) |")
@@ -377,11 +385,13 @@ def main():
         base = statistics.median(times["cem-torchrl"])
         for key, (planner, dtype, rows) in planners.items():
             med, best = statistics.median(times[key]), min(times[key])
-            if rows is None:
-                rows = (P + KEPT) * planner.effective_particles
+            first_rows = rows
+            if rows is None:  # ours: EnsembleModelEnv runs the particles' shared first step once
+                first_rows, rows = P + KEPT, (P + KEPT) * planner.effective_particles
             iters = getattr(planner, "last_info", {}).get("iterations", I)  # CEMPlanner keeps no info
-            frac = flops_per_action(model, rows, H, iters) / best / (best_peak[dtype] * 1e9)
+            frac = flops_per_action(model, rows, H, iters, first_rows) / best / (best_peak[dtype] * 1e9)
             row = dict(shape=name, d_s=d_s, d_a=d_a, H=H, planner=key, median_s=med, best_s=best, dtype=dtype,
+                       rows=rows, first_step_rows=first_rows,
                        speedup_vs_cem_median=base / med, fraction_of_peak=frac, iterations=iters, times=times[key])
             results["rows"].append(row)
             print(f"| {name} ({d_s},{d_a}) H={H} | {key} | {med * 1e3:.1f} | {best * 1e3:.1f} | {base / med:.2f}x | "
