@@ -2,8 +2,8 @@
  *
  * Why: in a bf16 plan on a CPU with AMX, torch's SiLU costs as much as the layer's GEMM and runs no
  * faster in bf16 than in fp32 (it widens to fp32 and calls an accurate vectorized exp); on AMD
- * EPYC with AVX512-BF16 it is 2-2.6x slower than this kernel (benchmarks/planning_speed.py
- * --layer-costs). Here exp is 2^k times a polynomial (fp32 results within 1e-6 relative of
+ * EPYC with AVX512-BF16 it is 1.5-1.9x slower than this kernel (benchmarks/planning_speed.py
+ * --layer-costs, 2 threads). Here exp is 2^k times a polynomial (fp32 results within 1e-6 relative of
  * torch's; bf16 outputs round from the same fp32 value as torch's).
  *
  * Built at install time as the optional extension torchrl_softae.modules._silu (pyproject.toml);
