@@ -174,14 +174,13 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     def _mean_and_sigma(self, observation, action, member_index=None, particles=1):
         """Members ``(L, *B, d_s)``, mu and sigma ``(*B, d_s)`` and the aleatoric std (of the
         particle's member ``(*B, d_s)`` with ``member_index``, else ``(L, *B, d_s)``)."""
-        if particles == 1:
-            members, ale = self.world_model.predict_members(
-                observation, action, with_aleatoric=self.aleatoric_noise, member_index=member_index)
-            mu = members.mean(0)
-            return members, mu, ensemble_std(members, mu), ale
-        members, ale = self.world_model.predict_members(observation, action, with_aleatoric=self.aleatoric_noise)
+        members, ale = self.world_model.predict_members(
+            observation, action, with_aleatoric=self.aleatoric_noise,
+            member_index=member_index if particles == 1 else None)  # shared rows: every member's, picked below
         mu = members.mean(0)
         sigma = ensemble_std(members, mu)
+        if particles == 1:
+            return members, mu, sigma, ale
         shape = (*mu.shape[:-2], particles, mu.shape[-1])
         members, mu, sigma = members.expand(members.shape[0], *shape), mu.expand(shape), sigma.expand(shape)
         if ale is not None:
@@ -201,8 +200,8 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         _, mu, sigma, ale = self._mean_and_sigma(observation, action, particles=particles)
         if eta is None:
             raise KeyError("mode='optimistic' needs the hallucinated control 'eta' in the tensordict")
-        if eta.shape != mu.shape and (particles == 1 or eta.shape != (*mu.shape[:-2], 1, mu.shape[-1])):
-            raise ValueError(f"'eta' has shape {tuple(eta.shape)}, expected {tuple(mu.shape)}")
+        if eta.shape != observation.shape:  # eta perturbs the state it comes with
+            raise ValueError(f"'eta' has shape {tuple(eta.shape)}, expected {tuple(observation.shape)}")
         nxt = torch.addcmul(mu, sigma, eta)
         return self._with_noise(nxt, None if ale is None else ale.square().mean(0).sqrt()), sigma
 

@@ -380,11 +380,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
             lowp = self.planning_dtype or torch.float32
             cols = None if (want_logvar or not self.probabilistic) else d  # both heads in one matmul
             path = self._inference_path(x, lowp, cols) if x.dim() == 2 else "bmm"
-            silu_kernel = path.endswith("-silu-kernel")
-            if path.startswith("conv"):
-                y = self._network_grouped_conv(x, lowp, cols, fused=path == "conv-fused", silu_kernel=silu_kernel)
-            else:
-                y = self._network_bmm(x, lowp, cols, silu_kernel=silu_kernel)
+            y = self._run_path(path, x, lowp, cols)
         if not want_logvar:
             return y[..., :d], None
         return y[..., :d], (self._bound_logvar(y[..., d:]) if bound_logvar else y[..., d:])
@@ -421,15 +417,17 @@ class EnsembleWorldModel(TensorDictModuleBase):
         packing = "packed conv weights" if _PACK_CONV_WEIGHT is not None else "plain conv weights"
         key = f"ensemble {self.ensemble_size}|{shapes}|{dtype}|rows {rows}|cols {cols}|{packing}"
         probe = torch.randn(rows, x.shape[1], dtype=x.dtype, generator=torch.Generator().manual_seed(0))
-        candidates = {"conv": lambda: self._network_grouped_conv(probe, dtype, cols)}
-        if self._fused_activation() is not None:
-            candidates["conv-fused"] = lambda: self._network_grouped_conv(probe, dtype, cols, fused=True)
-        candidates["bmm"] = lambda: self._network_bmm(probe, dtype, cols)
-        if self._silu_kernel_applies():
-            candidates["conv-silu-kernel"] = lambda: self._network_grouped_conv(probe, dtype, cols, silu_kernel=True)
-            candidates["bmm-silu-kernel"] = lambda: self._network_bmm(probe, dtype, cols, silu_kernel=True)
+        candidates = {p: (lambda p=p: self._run_path(p, probe, dtype, cols)) for p in self.available_inference_paths()
+                      if p != "conv-fused" or self._fused_activation() is not None}
         self._path_memo[memo] = paths.choose(key, candidates)
         return self._path_memo[memo]
+
+    def _run_path(self, path: str, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
+        """The network on a shared ``(N, in)`` input (or ``bmm`` on ``(L, N, in)``) by inference ``path``."""
+        silu_kernel = path.endswith("-silu-kernel")
+        if path.startswith("conv"):
+            return self._network_grouped_conv(x, dtype, cols, fused=path == "conv-fused", silu_kernel=silu_kernel)
+        return self._network_bmm(x, dtype, cols, silu_kernel=silu_kernel)
 
     @torch.no_grad()
     def auto_planning_dtype(self, rows: int = 2048) -> torch.dtype | None:
