@@ -279,3 +279,18 @@ def test_result_histograms_pool_to_the_recorded_coverage_and_refuse_other_data(t
     (tmp_path / "results" / "pendulum" / "random-s0-ep2.json").write_text(json.dumps({**result, "tip_histogram": hist}))
     path = ra.plot_coverage("Pendulum-v1", 2)
     assert path.name == "Pendulum-v1_tip_coverage_2ep.png" and path.stat().st_size > 1000
+
+
+def test_heldout_set_is_built_once_and_says_so(tmp_path, monkeypatch):
+    """A build (minutes on the arm) is announced with its size and cache path; a cached read is silent
+    and returns the same transitions."""
+    from torchrl_softae.pipeline.catalog import get_env_entry
+    from torchrl_softae.pipeline.data import heldout_set
+
+    monkeypatch.setenv("TORCHRL_SOFTAE_CACHE", str(tmp_path))
+    entry, lines = get_env_entry("Pendulum-v1"), []
+    first = heldout_set(entry, None, 40, announce=lines.append)
+    assert len(lines) == 2 and "size 40" in lines[0] and str(tmp_path) in lines[0]
+    assert lines[1].startswith("heldout set built: 40 transitions")
+    again = heldout_set(entry, None, 40, announce=lines.append)
+    assert len(lines) == 2 and torch.equal(first["next", "observation"], again["next", "observation"])

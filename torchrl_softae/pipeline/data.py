@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import random
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -43,10 +45,12 @@ def _cache_dir() -> Path:
     return Path(root)
 
 
-def _cached(entry: EnvEntry, kind: str, make, size: int, seed: int, run: RunDir | None) -> TensorDictBase:
+def _cached(entry: EnvEntry, kind: str, make, size: int, seed: int, run: RunDir | None,
+            announce: Callable[[str], None] | None = None) -> TensorDictBase:
     """``make(size, seed)``, cached in the run dir and in a per-user cache (``$TORCHRL_SOFTAE_CACHE``,
     default ``~/.cache/torchrl_softae``), keyed by env, physics version, size and seed: simulators
-    are slow, and runs of another physics version never share a set."""
+    are slow, and runs of another physics version never share a set. ``announce`` gets one line
+    before and one after a build (the arm's held-out set takes minutes)."""
     name = f"{entry.env_id}-v{entry.version}-{kind}-{size}-{seed}.pt"
     local = None if run is None else run.path / name
     if local is not None and local.exists():
@@ -55,7 +59,12 @@ def _cached(entry: EnvEntry, kind: str, make, size: int, seed: int, run: RunDir 
     if cached.exists():
         td = torch.load(cached, weights_only=False)
     else:
+        if announce is not None:
+            announce(f"building the {kind} set of {entry.env_id} (size {size}, seed {seed}) once; later runs read {cached}")
+        t0 = time.perf_counter()
         td = make(size, seed)
+        if announce is not None:
+            announce(f"{kind} set built: {td.shape[0]} transitions in {time.perf_counter() - t0:.0f} s")
         cached.parent.mkdir(parents=True, exist_ok=True)
         atomic_torch_save(td, cached)
     if local is not None:
@@ -63,19 +72,21 @@ def _cached(entry: EnvEntry, kind: str, make, size: int, seed: int, run: RunDir 
     return td
 
 
-def heldout_set(entry: EnvEntry, run: RunDir | None, size: int, seed: int = 12345) -> TensorDictBase:
+def heldout_set(entry: EnvEntry, run: RunDir | None, size: int, seed: int = 12345,
+                announce: Callable[[str], None] | None = None) -> TensorDictBase:
     """The env's held-out transitions (``entry.heldout``), cached."""
-    return _cached(entry, "heldout", entry.heldout, size, seed, run)
+    return _cached(entry, "heldout", entry.heldout, size, seed, run, announce)
 
 
-def reference_set(entry: EnvEntry, run: RunDir | None, heldout: TensorDictBase, seed: int = 54321) -> TensorDictBase:
+def reference_set(entry: EnvEntry, run: RunDir | None, heldout: TensorDictBase, seed: int = 54321,
+                  announce: Callable[[str], None] | None = None) -> TensorDictBase:
     """The fixed, broad set whose per-dimension std normalizes the model error: the held-out set,
     plus as many of the env's extra reference transitions where it has some (the arm: i.i.d.
     random-action motion, so that dimensions the reaching rollouts barely move -- twist, axial
     velocity -- are not divided by ~0, while the positions keep the workspace's spread)."""
     if entry.reference is None:
         return heldout
-    extra = _cached(entry, "reference", entry.reference, heldout.shape[0], seed, run)[: heldout.shape[0]]
+    extra = _cached(entry, "reference", entry.reference, heldout.shape[0], seed, run, announce)[: heldout.shape[0]]
     keys = ["observation", "action", ("next", "observation")]
     return torch.cat([heldout.select(*keys), extra.select(*keys)], 0)
 
@@ -165,12 +176,13 @@ def coverage(entry: EnvEntry, data: TensorDictBase, bounds: torch.Tensor, bins: 
 class ModelAccuracy:
     """The held-out metric of one env, set up once per run: ``accuracy(model)`` returns the row
     ``{"heldout_nmse": ..., "heldout_nmse/GROUP": ..., "heldout_nmse_legacy": ...}``;
-    :attr:`baselines` holds the same metric for ``s' = s`` and the reference mean."""
+    :attr:`baselines` holds the same metric for ``s' = s`` and the reference mean. ``announce``
+    gets a line where a set is built rather than read from the cache."""
 
-    def __init__(self, entry: EnvEntry, run: RunDir | None, size: int):
+    def __init__(self, entry: EnvEntry, run: RunDir | None, size: int, announce: Callable[[str], None] | None = None):
         self.entry = entry
-        self.heldout = heldout_set(entry, run, size)
-        self.scale = reference_scale(reference_set(entry, run, self.heldout))
+        self.heldout = heldout_set(entry, run, size, announce=announce)
+        self.scale = reference_scale(reference_set(entry, run, self.heldout, announce=announce))
         self.groups = entry.accuracy_groups
         self.baselines = {}
         for name, (overall, groups) in trivial_nmse(self.heldout, self.scale, self.groups).items():

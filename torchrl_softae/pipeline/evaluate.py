@@ -214,7 +214,7 @@ def evaluate_run(
             raise ConfigError(f"unknown task {name!r} for env {cfg.env!r}; valid tasks: {', '.join(sorted(entry.tasks))}")
     out = {"env": cfg.env, "method": cfg.method, "seed": cfg.seed, "episodes_explored": state["episode"] + 1,
            "transitions": state["num_transitions"]}
-    accuracy = ModelAccuracy(entry, run, cfg.heldout_size)
+    accuracy = ModelAccuracy(entry, run, cfg.heldout_size, announce=print if progress else None)
     out.update(accuracy(model))
     out.update(accuracy.baselines)
     run.write_json(run.eval_dir / "model_accuracy.json", dict(out))

@@ -143,7 +143,8 @@ class Explorer:
                 (self.echo or print)(what)
         else:
             rb = self.run.new_replay_buffer(capacity)
-        accuracy = ModelAccuracy(self.entry, self.run, cfg.heldout_size)
+        accuracy = ModelAccuracy(self.entry, self.run, cfg.heldout_size,
+                                 announce=self.echo or (print if self.progress else None))
         bounds = projection_bounds(self.entry, accuracy.heldout)
         logger = self._logger(wandb_id)
 
