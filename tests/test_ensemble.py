@@ -265,17 +265,21 @@ def test_packed_conv_weights_match(monkeypatch):
     bit where both run the same oneDNN op; the unfused plain path runs ``F.conv2d``, whose kernel
     for a single row rounds differently); an optimizer step re-packs them (no stale weights)."""
     torch.manual_seed(0)
+    # one exact pack (200 rows), then buckets: 7, 1 and 300 rows run on weights packed for 8, 2, 512
+    monkeypatch.setattr(ensemble_module, "_EXACT_PACKS", 1)
     model = EnsembleWorldModel(6, 2, num_cells=32, depth=3).eval()
-    xs = [torch.randn(n, 8) for n in (200, 7, 1, 300)]  # packed for 256 rows by the first
+    xs = [torch.randn(n, 8) for n in (200, 7, 1, 300)]
     for dtype in (None, torch.bfloat16):
         model.planning_dtype = dtype
         for path in ("conv", "conv-fused"):
             model.inference_path = path
             with torch.no_grad():
                 packed = [model.network(x)[0] for x in xs]
-                monkeypatch.setattr(ensemble_module, "_PACK_CONV_WEIGHT", None)
-                plain = [model.network(x)[0] for x in xs]
-                monkeypatch.undo()
+                assert model._exact_pack_rows == {200}
+                assert [model._pack_rows(x.shape[0]) for x in xs] == [200, 8, 2, 512]
+                with monkeypatch.context() as m:
+                    m.setattr(ensemble_module, "_PACK_CONV_WEIGHT", None)
+                    plain = [model.network(x)[0] for x in xs]
             for a, b in zip(packed, plain):
                 if path == "conv-fused":
                     assert torch.equal(a, b)

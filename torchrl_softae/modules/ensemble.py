@@ -76,6 +76,10 @@ def _watch_optimizer_steps(model) -> None:
     _LIVE_MODELS.add(model)
 
 
+#: distinct row counts per model whose convolution weights are packed exactly (see ``_pack_rows``)
+_EXACT_PACKS = 8
+
+
 def _row_bucket(rows: int) -> int:
     """The power of two at or above ``rows`` (at least 2): measured choices and packed weights are
     kept per bucket, not per exact row count."""
@@ -253,6 +257,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         # Reduced-precision planning: hidden 256x256 layers in this dtype (None = fp32).
         self.planning_dtype: torch.dtype | None = None
         self._inference_cache: dict = {}
+        self._exact_pack_rows: set[int] = set()  # row counts whose conv weights are packed exactly
         self._path_memo: dict = {}  # measured choices (paths.choose) this model already looked up
         _watch_optimizer_steps(self)
 
@@ -497,6 +502,15 @@ class EnsembleWorldModel(TensorDictModuleBase):
         # (1, L * out, N, 1) channels-last is an (N, L * out) buffer: view it as (L, N, out)
         return h.squeeze(0).squeeze(-1).t().reshape(n, L, -1).transpose(0, 1).float()
 
+    def _pack_rows(self, rows: int) -> int:
+        """The row count to pack convolution weights for: ``rows`` itself for the first
+        :data:`_EXACT_PACKS` distinct counts (planning uses a handful), its bucket after them."""
+        seen = self._exact_pack_rows
+        if rows in seen or len(seen) < _EXACT_PACKS:
+            seen.add(rows)
+            return rows
+        return _row_bucket(rows)
+
     def _conv_weights(self, layer: EnsembleLinear, dtype: torch.dtype, cols: int | None, groups: int,
                       rows: int | None = None):
         """``layer`` as a grouped 1x1 convolution: weight ``(L * out, in, 1, 1)`` in channels-last
@@ -504,12 +518,15 @@ class EnsembleWorldModel(TensorDictModuleBase):
         weight was 7x slower) and bias ``(L * out,)``. The first layer's members share the input:
         the same weight with ``groups=1``.
 
-        ``rows``: also pack the weight into oneDNN's own blocked layout for inputs of about that
-        many rows (power-of-two buckets), once, instead of oneDNN reordering the plain weight at
-        every call: measured on an AMX CPU, the reorder was a quarter to a third of a bf16 layer at
-        the 206 rows of one-particle planning. Any row count is still correct with it (the same
-        results as the plain weight: ``test_packed_conv_weights_match``)."""
-        bucket = None if rows is None else _row_bucket(rows)
+        ``rows``: also pack the weight into oneDNN's own blocked layout for inputs of that many rows,
+        once, instead of oneDNN reordering the plain weight at every call: measured on an AMX CPU,
+        the reorder was a quarter to a third of a bf16 layer at the 206 rows of one-particle
+        planning. The pack is for the exact row count (the first :data:`_EXACT_PACKS` counts a
+        model sees; a power-of-two bucket after them, so varying batch sizes cannot grow the cache
+        without bound): a weight packed for 256 rows made 206-row fp32 convolutions 1.6x slower on
+        one thread of the AMD EPYC (9.1 vs 5.6 ms per network call). Any row count is still
+        correct with any pack (the same results as the plain weight: ``test_packed_conv_weights_match``)."""
+        bucket = None if rows is None else self._pack_rows(rows)
 
         def build(w, b):
             if cols is not None:
