@@ -96,9 +96,9 @@ def cpu_kind(cpu: dict) -> str:
     return "amx" if cpu["amx_bf16"] else "avx512-bf16" if cpu["avx512_bf16"] else "no-bf16"
 
 
-def make_model(d_s, d_a, seed=0):
+def make_model(d_s, d_a, seed=0, ensemble_size=5):
     torch.manual_seed(seed)
-    m = EnsembleWorldModel(d_s, d_a)
+    m = EnsembleWorldModel(d_s, d_a, ensemble_size=ensemble_size)
     obs = torch.randn(1000, d_s)
     m.fit_normalizers(obs, torch.rand(1000, d_a) * 2 - 1, obs + 0.1 * torch.randn(1000, d_s))
     return m.eval()
