@@ -104,6 +104,12 @@ def make_model(d_s, d_a, seed=0, ensemble_size=5):
     return m.eval()
 
 
+def softae_env(model):
+    """SoftAE's model env as the planner sees it: optimistic propagation, hallucinated control
+    (beta = 2) and the exploration reward."""
+    return TransformedEnv(EnsembleModelEnv(model, mode="optimistic"), Compose(HallucinatedControl(2.0), UncertaintyReward()))
+
+
 def _best(fn, repeats=10):
     fn()
     best = float("inf")
@@ -344,7 +350,7 @@ def main():
         model = make_model(d_s, d_a)
         obs = TensorDict({"observation": torch.randn(d_s)}, [])
         sample_env = TransformedEnv(EnsembleModelEnv(model, mode="sample"), UncertaintyReward())
-        opt_env = TransformedEnv(EnsembleModelEnv(model, mode="optimistic"), Compose(HallucinatedControl(2.0), UncertaintyReward()))
+        opt_env = softae_env(model)
         icem = dict(planning_horizon=H, optim_steps=I, num_candidates=P, top_k=K, num_particles=N)
         planners = {"cem-torchrl": (CEMPlanner(sample_env, H, I, P * N, K), "fp32", P * N)}
         if have_mbrl:  # TS-inf in mbrl-lib runs each particle through its own member only: 1/L of the rows

@@ -38,12 +38,10 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDict
-from torchrl.envs import Compose, TransformedEnv
 
 sys.path.insert(0, str(Path(__file__).parent))
-from planning_speed import I, K, P, cpu_description, cpu_kind, make_model  # noqa: E402
+from planning_speed import I, K, P, cpu_description, cpu_kind, make_model, softae_env  # noqa: E402
 
-from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward  # noqa: E402
 from torchrl_softae.modules import ICEMPlanner  # noqa: E402
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS  # noqa: E402
 
@@ -52,8 +50,7 @@ D_S, D_A, H = 58, 12, 10  # the arm
 
 def softae_planner(ensemble_size: int, seed: int, precision: str) -> ICEMPlanner:
     model = make_model(D_S, D_A, seed=seed, ensemble_size=ensemble_size)
-    env = TransformedEnv(EnsembleModelEnv(model, mode="optimistic"), Compose(HallucinatedControl(2.0), UncertaintyReward()))
-    return ICEMPlanner(env, planning_horizon=H, optim_steps=I, num_candidates=P, top_k=K, num_particles=1,
+    return ICEMPlanner(softae_env(model), planning_horizon=H, optim_steps=I, num_candidates=P, top_k=K, num_particles=1,
                        precision=precision, seed=seed)
 
 

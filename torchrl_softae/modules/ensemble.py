@@ -81,8 +81,8 @@ _EXACT_PACKS = 8
 
 
 def _row_bucket(rows: int) -> int:
-    """The power of two at or above ``rows`` (at least 2): measured choices and packed weights are
-    kept per bucket, not per exact row count."""
+    """The power of two at or above ``rows`` (at least 2): measured choices are kept per bucket, not
+    per exact row count (packed weights too, once a model has seen ``_EXACT_PACKS`` counts)."""
     return 1 << max(int(rows) - 1, 1).bit_length()
 
 
