@@ -10,10 +10,14 @@ with mean propagation (one particle), H from the env's defaults; episodes are cu
 control steps (the ratio does not depend on it). The two modes are interleaved for ``--repeats``
 rounds (at least 3) and reported as median and best, so one slow round on a noisy machine cannot
 make the ratio. Why batching pays at all: E states make every planner call E times as many model
-rows, and a 5 x 256 layer at 206 rows (one state) runs far below the GEMM peak, while the per-step
-elementwise work costs about the same for 1 or 8 states. Prints the CPU (vendor, AVX-512,
-AVX512-BF16, AMX); results: stdout and
-benchmarks/results/eval_batch_speed-KIND[-bf16].json (KIND: amx, avx512-bf16 or no-bf16).
+rows, and a 5 x 256 layer at 206 rows (one state) runs below the GEMM peak, while the per-step
+elementwise work costs about the same for 1 or 8 states. What bounds it: the ensemble FLOPs of
+each mode are counted as they run (every ``network`` call's rows, log-variance head only where it
+is computed) and put against the GEMM peak of the planner's dtype measured in the same run: a
+batch can at best run them at that peak, so "at most" = one-after-another's time / the batch's
+FLOPs at the peak, whatever the implementation. Prints the CPU (vendor, AVX-512, AVX512-BF16,
+AMX); results: stdout and benchmarks/results/eval_batch_speed-KIND[-bf16].json (KIND: amx,
+avx512-bf16 or no-bf16).
 """
 from __future__ import annotations
 
@@ -28,7 +32,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from planning_speed import cpu_description, cpu_kind  # noqa: E402
+from planning_speed import best_peaks, cpu_description, cpu_kind, flops_per_row, peaks  # noqa: E402
 
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS  # noqa: E402
 from torchrl_softae.pipeline.builders import build_world_model  # noqa: E402
@@ -46,6 +50,27 @@ def model_for(env_id: str, cfg):
     model = build_world_model(cfg.model, obs.shape[-1], act.shape[-1])
     model.fit_normalizers(obs, act, nxt)
     return model.eval()
+
+
+class CountNetworkFlops:
+    """Counts the ensemble FLOPs of every ``model.network`` call inside the block (the instance's
+    method is wrapped for the block's duration, then the class's is back)."""
+
+    def __init__(self, model):
+        self.model, self.flops = model, 0
+
+    def __enter__(self):
+        model, network = self.model, self.model.network
+
+        def counted(x, with_logvar=True, bound_logvar=True):
+            self.flops += x.shape[-2] * flops_per_row(model, with_logvar)  # rows x every member's matmuls
+            return network(x, with_logvar, bound_logvar)
+
+        model.network = counted
+        return self
+
+    def __exit__(self, *exc):
+        del self.model.network
 
 
 def main():
@@ -67,32 +92,50 @@ def main():
            else Path(__file__).parent / "results" / f"eval_batch_speed-{cpu_kind(cpu)}{suffix}.json")
     print(f"# eval_batch_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; planner precision {args.precision}", flush=True)
-    results = {"cpu": cpu, "threads": args.threads, "repeats": repeats, "precision": args.precision, "envs": {}}
+    pk = peaks()
+    peak = best_peaks(pk)["bf16" if args.precision == "bf16" else "fp32"]
+    print(f"GEMM peaks (2048^3) [GFLOP/s]: " + ", ".join(f"{k} {v:.0f}" for k, v in pk.items())
+          + f"; this planner's dtype: {peak:.0f}", flush=True)
+    results = {"cpu": cpu, "threads": args.threads, "repeats": repeats, "precision": args.precision,
+               "peaks_gflops": pk, "peak_gflops": peak, "envs": {}}
     for env_id in args.envs:
         cfg = apply_overrides(make_config(env_id, "softae", wandb="disabled"), [f"planner.precision={args.precision}"])
         model = model_for(env_id, cfg)
         task = next(iter(get_env_entry(env_id).tasks.values()))
         task = replace(task, horizon=args.steps)
         times = {"batched": [], "sequential": []}
+        flops = {"batched": [], "sequential": []}
         starts = {}
         for _ in range(repeats):  # interleaved: one evaluation of each mode per round
             for mode in times:
-                t = time.perf_counter()
-                res = zero_shot(cfg, model, task, episodes=args.episodes, seed=0, progress=False,
-                                batched=mode == "batched")
-                times[mode].append(time.perf_counter() - t)
+                with CountNetworkFlops(model) as count:
+                    t = time.perf_counter()
+                    res = zero_shot(cfg, model, task, episodes=args.episodes, seed=0, progress=False,
+                                    batched=mode == "batched")
+                    times[mode].append(time.perf_counter() - t)
+                flops[mode].append(count.flops)
                 starts[mode] = res["initial_states"]
         med = {m: statistics.median(v) for m, v in times.items()}
         best = {m: min(v) for m, v in times.items()}
+        gflop = {m: statistics.median(v) / 1e9 for m, v in flops.items()}
+        at_peak = gflop["batched"] / peak  # the batch's ensemble FLOPs at the GEMM peak, nothing else
         row = {"task": task.name, "episodes": args.episodes, "steps": args.steps, "horizon": cfg.planner.horizon,
                "times_s": times, "batched_median_s": med["batched"], "sequential_median_s": med["sequential"],
                "speedup_median": med["sequential"] / med["batched"], "speedup_best": best["sequential"] / best["batched"],
+               "network_gflop": gflop,
+               "fraction_of_peak": {m: gflop[m] / (med[m] * peak) for m in med},
+               "batched_seconds_at_peak": at_peak, "max_speedup_at_peak": med["sequential"] / at_peak,
                "same_initial_states": starts["batched"] == starts["sequential"]}
         results["envs"][env_id] = row
+        frac = row["fraction_of_peak"]
         print(f"{env_id} ({task.name}, {args.episodes} episodes x {args.steps} steps, H={cfg.planner.horizon}, "
               f"{args.precision}): one after another {med['sequential']:.1f} s (best {best['sequential']:.1f}), as one "
               f"batch {med['batched']:.1f} s (best {best['batched']:.1f}) -> {row['speedup_median']:.2f}x median, "
-              f"{row['speedup_best']:.2f}x best; same initial states: {row['same_initial_states']}", flush=True)
+              f"{row['speedup_best']:.2f}x best; same initial states: {row['same_initial_states']}\n"
+              f"  ensemble {gflop['sequential']:.0f} / {gflop['batched']:.0f} GFLOP (one after another / batch), "
+              f"{100 * frac['sequential']:.0f} % / {100 * frac['batched']:.0f} % of the {peak:.0f} GFLOP/s peak; "
+              f"the batch's FLOPs at the peak take {at_peak:.1f} s: at most {row['max_speedup_at_peak']:.2f}x",
+              flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1))
     print(f"wrote {out}")

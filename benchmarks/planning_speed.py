@@ -35,7 +35,10 @@ against its network calls alone: what the horizon loop costs beyond the model.
 
 Prints the CPU (vendor, AVX-512, AVX512-BF16, AMX), the GEMM peaks of every path measured in the
 same run (MKL ``a @ b`` and oneDNN 1x1 convolution, fp32 and bf16), and "% of peak" against the
-best peak of the dtype each planner's hidden layers use. Results: stdout and
+best peak of the dtype each planner's hidden layers use (FLOPs as the inference path runs them: the
+log-variance head only where propagation draws aleatoric noise). "At the peak" is the bound a
+target has to fit in: the contender's ensemble FLOPs at that peak with nothing else to do, and
+the ratio to ``CEMPlanner`` that time would give. Results: stdout and
 benchmarks/results/planning_speed-KIND.json (KIND: amx, avx512-bf16 or no-bf16). mbrl-lib (its own pins are from 2021, hence
 ``--no-deps`` for it alone; hydra-core brings the omegaconf and antlr4 it needs):
 ``pip install --no-deps mbrl==0.2.0 && pip install hydra-core termcolor`` (:data:`MBRL_INSTALL`).
@@ -264,13 +267,26 @@ def print_loop_overhead(rows: list[dict]) -> None:
               f"| {100 * r['network_ms'] / r['ours_ms']:.0f}% |")
 
 
-def flops_per_action(model, rows, H, iters, first_rows=None):
+def flops_per_row(model, with_logvar: bool = True) -> int:
+    """FLOPs of one ensemble row (every member's matmuls), as the inference path runs it: without
+    the log-variance half of the output layer where propagation has no aleatoric noise."""
+    sizes = [(layer.in_features, layer.out_features) for layer in model.layers]
+    if model.probabilistic and not with_logvar:
+        sizes[-1] = (sizes[-1][0], model.observation_dim)
+    return sum(2 * i * o for i, o in sizes) * model.ensemble_size
+
+
+def best_peaks(pk: dict) -> dict:
+    """The best GEMM peak of each dtype among the paths :func:`peaks` measured, GFLOP/s."""
+    return {"fp32": max(pk["matmul_fp32"], pk["onednn_fp32"]), "bf16": max(pk["matmul_bf16"], pk["onednn_bf16"])}
+
+
+def flops_per_action(model, rows, H, iters, first_rows=None, with_logvar=True):
     """FLOPs of the ensemble in one action: ``rows`` model rows per horizon step, ``first_rows`` at
     the first step (where our planner runs a candidate's particles once: they share its state and
     action), ``iters`` iterations."""
-    per_row = sum(2 * layer.in_features * layer.out_features for layer in model.layers) * model.ensemble_size
     first_rows = rows if first_rows is None else first_rows
-    return per_row * (first_rows + rows * (H - 1)) * iters
+    return flops_per_row(model, with_logvar) * (first_rows + rows * (H - 1)) * iters
 
 
 class MbrlIcem:
@@ -330,7 +346,7 @@ def main():
     cpu = cpu_description()
     out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"planning_speed-{cpu_kind(cpu)}.json"
     pk = peaks()
-    best_peak = {"fp32": max(pk["matmul_fp32"], pk["onednn_fp32"]), "bf16": max(pk["matmul_bf16"], pk["onednn_bf16"])}
+    best_peak = best_peaks(pk)
     print(f"# planning_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}")
     print("GEMM peaks (2048^3, best of 10) [GFLOP/s]: " + ", ".join(f"{k} {v:.0f}" for k, v in pk.items()))
@@ -344,8 +360,9 @@ def main():
         print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} ({MBRL_INSTALL})")
     results = {"cpu": cpu, "peaks_gflops": pk, "silu_kernel_isa": silu_kernel.isa(), "threads": args.threads,
                "repeats": repeats, "rows": []}
-    print("\n| shape | planner | median ms | best ms | vs CEMPlanner (median) | % of peak (its dtype) |")
-    print("|---|---|---|---|---|---|")
+    print("\n| shape | planner | median ms | best ms | vs CEMPlanner (median) | % of peak (its dtype) "
+          "| at the peak: time, vs CEMPlanner |")
+    print("|---|---|---|---|---|---|---|")
     for name, d_s, d_a, H in shapes:
         model = make_model(d_s, d_a)
         obs = TensorDict({"observation": torch.randn(d_s)}, [])
@@ -395,19 +412,30 @@ def main():
             if rows is None:  # ours: EnsembleModelEnv runs the particles' shared first step once
                 first_rows, rows = P + KEPT, (P + KEPT) * planner.effective_particles
             iters = getattr(planner, "last_info", {}).get("iterations", I)  # CEMPlanner keeps no info
-            frac = flops_per_action(model, rows, H, iters, first_rows) / best / (best_peak[dtype] * 1e9)
+            # the log-variance head runs only where propagation draws aleatoric noise (PETS-AE's
+            # env, and mbrl-lib's GaussianMLP, which always computes both heads)
+            env = getattr(planner, "env", sample_env)
+            with_logvar = getattr(getattr(env, "base_env", env), "aleatoric_noise", True)
+            flops = flops_per_action(model, rows, H, iters, first_rows, with_logvar)
+            frac = flops / best / (best_peak[dtype] * 1e9)
+            # the fastest this computation could be: its ensemble FLOPs at the GEMM peak, nothing else
+            at_peak = flops / (best_peak[dtype] * 1e9)
             row = dict(shape=name, d_s=d_s, d_a=d_a, H=H, planner=key, median_s=med, best_s=best, dtype=dtype,
-                       rows=rows, first_step_rows=first_rows,
-                       speedup_vs_cem_median=base / med, fraction_of_peak=frac, iterations=iters, times=times[key])
+                       rows=rows, first_step_rows=first_rows, gflop=flops / 1e9, with_logvar=with_logvar,
+                       speedup_vs_cem_median=base / med, fraction_of_peak=frac, iterations=iters,
+                       seconds_at_peak=at_peak, max_speedup_vs_cem=base / at_peak, times=times[key])
             results["rows"].append(row)
             print(f"| {name} ({d_s},{d_a}) H={H} | {key} | {med * 1e3:.1f} | {best * 1e3:.1f} | {base / med:.2f}x | "
-                  f"{100 * frac:.0f}% ({dtype}) |", flush=True)
+                  f"{100 * frac:.0f}% ({dtype}) | {at_peak * 1e3:.0f} ms, {base / at_peak:.2f}x |", flush=True)
     for name, *_ in shapes:
         rr = {r["planner"]: r for r in results["rows"] if r["shape"] == name}
         print(f"{name}: bf16/fp32 full {rr['icem-fp32-full']['median_s'] / rr['icem-bf16-full']['median_s']:.2f}x, "
               f"bf16/fp32 dedup {rr['icem-fp32-dedup']['median_s'] / rr['icem-bf16-dedup']['median_s']:.2f}x, "
               f"full fp32 vs CEMPlanner {rr['icem-fp32-full']['speedup_vs_cem_median']:.2f}x, "
-              f"dedup fp32 vs CEMPlanner {rr['icem-fp32-dedup']['speedup_vs_cem_median']:.2f}x"
+              f"dedup fp32 vs CEMPlanner {rr['icem-fp32-dedup']['speedup_vs_cem_median']:.2f}x "
+              f"(at most {rr['icem-fp32-full']['max_speedup_vs_cem']:.2f}x and "
+              f"{rr['icem-fp32-dedup']['max_speedup_vs_cem']:.2f}x with every FLOP at the fp32 peak; bf16/fp32 at "
+              f"most {best_peak['bf16'] / best_peak['fp32']:.2f}x, the peaks' ratio)"
               + (f", full fp32 vs mbrl-lib {rr['mbrl-icem']['median_s'] / rr['icem-fp32-full']['median_s']:.2f}x"
                  if "mbrl-icem" in rr else ""))
     if args.layer_costs:
