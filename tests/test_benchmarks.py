@@ -31,3 +31,20 @@ print("\\nFAILED: ".join(["", *failed]))
     failed = out.stdout.split("\nFAILED: ")[1:]
     assert not failed, failed
     assert out.stdout.count("usage:") == len(SCRIPTS)
+
+
+def test_speed_targets_find_a_measured_row_for_every_target_of_each_recorded_cpu_kind():
+    """The targets live in one list and the rows they are checked against are built from the
+    benchmark records: a renamed contender or field must not leave a target silently unchecked."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import speed_targets
+
+    checked = 0
+    for kind in speed_targets.KINDS:
+        if not (ROOT / "benchmarks" / "results" / f"planning_speed-{kind}.json").exists():
+            continue
+        names = {row[0] for row in speed_targets.measured_rows(kind)}
+        expected = {name for name, applies, _, _ in speed_targets.TARGETS if applies in (None, kind)}
+        assert expected <= names, (kind, expected - names)
+        checked += 1
+    assert checked >= 1
