@@ -19,11 +19,12 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-from planning_speed import cpu_description, cpu_kind  # noqa: E402
+from planning_speed import best_peaks, cpu_description, cpu_kind  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 KINDS = ("amx", "avx512-bf16", "no-bf16")
-SHAPES = {"arm58": "arm (58, 12), H=10", "sopra32-H5": "SoPrA (32, 6), H=5"}
+#: planning_speed shape -> (where, in the table; the robot, in the per-robot targets' names)
+SHAPES = {"arm58": ("arm (58, 12), H=10", "arm"), "sopra32-H5": ("SoPrA (32, 6), H=5", "SoPrA")}
 
 #: (name, kind it applies to or None for every kind, comparison, threshold)
 TARGETS = [
@@ -48,21 +49,14 @@ def _load(name: str) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
-def _peak_ratio(record: dict) -> float | None:
-    pk = record.get("peaks_gflops") or {}
-    try:
-        return max(pk["matmul_bf16"], pk["onednn_bf16"]) / max(pk["matmul_fp32"], pk["onednn_fp32"])
-    except KeyError:
-        return None
-
-
 def measured_rows(kind: str) -> list[tuple]:
     """``(target, where, measured, bound or None)`` for every target of ``kind`` its records cover."""
     out = []
     planning = _load(f"planning_speed-{kind}.json")
     if planning is not None:
-        peak_ratio = _peak_ratio(planning)
-        for shape, where in SHAPES.items():
+        peak = best_peaks(planning["peaks_gflops"])
+        peak_ratio = peak["bf16"] / peak["fp32"]
+        for shape, (where, robot) in SHAPES.items():
             rows = {r["planner"]: r for r in planning["rows"] if r["shape"] == shape}
             if not rows:
                 continue
@@ -77,8 +71,7 @@ def measured_rows(kind: str) -> list[tuple]:
                     out.append((f"{particles} {prec}, % of the {prec} peak", where, 100 * row["fraction_of_peak"],
                                 None))
             bf16 = rows["icem-bf16-dedup"]
-            name = "arm" if shape == "arm58" else "SoPrA"
-            out.append((f"SoftAE (1 particle bf16) ms per action, {name}", where, 1e3 * bf16["median_s"],
+            out.append((f"SoftAE (1 particle bf16) ms per action, {robot}", where, 1e3 * bf16["median_s"],
                         1e3 * bf16["seconds_at_peak"] if "seconds_at_peak" in bf16 else None))
     for suffix, prec in (("", "fp32"), ("-bf16", "bf16")):
         batched = _load(f"eval_batch_speed-{kind}{suffix}.json")
@@ -99,8 +92,8 @@ def main():
     if not rows:
         p.exit(2, f"speed_targets: no records for kind {kind!r} in {RESULTS} (run planning_speed.py and "
                   f"eval_batch_speed.py on such a CPU first)\n")
-    cpu = _load(f"planning_speed-{kind}.json") or _load(f"eval_batch_speed-{kind}.json")
-    print(f"# speed targets on {kind} ({cpu['cpu']['cpu']}), from benchmarks/results/*-{kind}*.json\n")
+    record = _load(f"planning_speed-{kind}.json") or _load(f"eval_batch_speed-{kind}.json")
+    print(f"# speed targets on {kind} ({record['cpu']['cpu']}), from benchmarks/results/*-{kind}*.json\n")
     print("| target | where | measured | at the GEMM peak | met |")
     print("|---|---|---|---|---|")
     by_name = {}
@@ -117,7 +110,7 @@ def main():
             fmt = (lambda v: f"{v:.0f}") if "%" in name or "ms" in name else (lambda v: f"{v:.2f}x")
             bound_txt = "" if bound is None else fmt(bound)
             print(f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bound_txt} | {'yes' if met else 'no'} |")
-    if cpu is not None and any("with_logvar" not in r for r in cpu.get("rows", [])):
+    if any("with_logvar" not in r for r in record.get("rows", [])):
         print("\n(this planning record predates 2026-12-03: its % of peak counts the log-variance head for every "
               "row, about 6 % too high for the 1-particle rows, and it has no bounds at the peak)")
 
