@@ -12,7 +12,7 @@ rounds (at least 3) and reported as median and best, so one slow round on a nois
 make the ratio. Why batching pays at all: E states make every planner call E times as many model
 rows, and a 5 x 256 layer at 206 rows (one state) runs below the GEMM peak, while the per-step
 elementwise work costs about the same for 1 or 8 states. What bounds it: the ensemble FLOPs of
-each mode are counted as they run (every ``network`` call's rows, log-variance head only where it
+each mode are counted as they run (every ``network_output`` call's rows, log-variance head only where it
 is computed) and put against the GEMM peak of the planner's dtype measured in the same run: a
 batch can at best run them at that peak, so "at most" = one-after-another's time / the batch's
 FLOPs at the peak, whatever the implementation. Prints the CPU (vendor, AVX-512, AVX512-BF16,
@@ -53,24 +53,25 @@ def model_for(env_id: str, cfg):
 
 
 class CountNetworkFlops:
-    """Counts the ensemble FLOPs of every ``model.network`` call inside the block (the instance's
-    method is wrapped for the block's duration, then the class's is back)."""
+    """Counts the ensemble FLOPs of every ``model.network_output`` call (every prediction goes
+    through it) inside the block (the instance's method is wrapped for the block's duration, then
+    the class's is back)."""
 
     def __init__(self, model):
         self.model, self.flops = model, 0
 
     def __enter__(self):
-        model, network = self.model, self.model.network
+        model, network_output = self.model, self.model.network_output
 
-        def counted(x, with_logvar=True, bound_logvar=True):
+        def counted(x, with_logvar=True):
             self.flops += x.shape[-2] * flops_per_row(model, with_logvar)  # rows x every member's matmuls
-            return network(x, with_logvar, bound_logvar)
+            return network_output(x, with_logvar)
 
-        model.network = counted
+        model.network_output = counted
         return self
 
     def __exit__(self, *exc):
-        del self.model.network
+        del self.model.network_output
 
 
 def main():

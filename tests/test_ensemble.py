@@ -6,7 +6,7 @@ from tensordict import TensorDict
 
 from torchrl_softae.modules import EnsembleWorldModel, ensemble_std
 from torchrl_softae.modules import ensemble as ensemble_module
-from torchrl_softae.modules import silu_kernel
+from torchrl_softae.modules import moments_kernel, silu_kernel
 from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 
 
@@ -241,6 +241,56 @@ def test_compiled_silu_matches_torch_in_fp32_and_bf16_on_every_layout():
     assert torch.equal(silu_kernel.silu_(strided), torch.nn.functional.silu(x[:200][::2]))
     with pytest.raises(ValueError, match="'sse9' is not one of this CPU's"):
         silu_kernel.use_isa("sse9")
+
+
+@pytest.mark.skipif(not moments_kernel.available(), reason="the moments kernel was not built or this CPU lacks AVX-512")
+def test_fused_moments_match_the_torch_ops(monkeypatch):
+    """``predict_moments`` through the one-pass kernel and through torch ops: the same mu, sigma,
+    sampled member's mean and aleatoric std to fp32 rounding, in fp32 and bf16, on the convolution
+    (strided output) and matmul (contiguous) paths, with and without trajectory sampling and the
+    log-variance head, for a deterministic model too; the kernel's own results are bit-for-bit
+    reproducible, also on 2 threads (rows split between them)."""
+    calls = []
+    kernel = moments_kernel.ensemble_moments
+    monkeypatch.setattr(moments_kernel, "ensemble_moments", lambda *a, **k: (calls.append(1), kernel(*a, **k))[1])
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(1)
+    for probabilistic in (True, False):
+        model = EnsembleWorldModel(21, 4, num_cells=32, depth=2, probabilistic=probabilistic)  # 21: a masked tail
+        obs = torch.randn(700, 21, generator=g) * 3
+        model.fit_normalizers(obs, torch.rand(700, 4, generator=g), obs + torch.randn(700, 21, generator=g))
+        model.eval()
+        obs, act = torch.randn(6, 70, 21, generator=g), torch.rand(6, 70, 4, generator=g) * 2 - 1
+        member = torch.randint(5, (6, 70), generator=g)
+        with torch.no_grad():
+            for dtype in (None, torch.bfloat16):
+                model.planning_dtype = dtype
+                for path in ("conv", "bmm"):
+                    model.inference_path = path
+                    for with_ale, idx in ((False, None), (True, member), (False, member)):
+                        model.fused_moments, n_calls = True, len(calls)
+                        fused = model.predict_moments(obs, act, with_ale, idx)
+                        assert len(calls) == n_calls + 1  # the kernel ran
+                        assert torch.equal(torch.stack([t for t in fused if t is not None]),
+                                           torch.stack([t for t in model.predict_moments(obs, act, with_ale, idx)
+                                                        if t is not None]))
+                        model.fused_moments = False
+                        ref = model.predict_moments(obs, act, with_ale, idx)
+                        assert len(calls) == n_calls + 2
+                        for got, want in zip(fused, ref):
+                            assert (got is None) == (want is None)
+                            if want is not None:
+                                assert got.shape == (6, 70, 21)
+                                torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+                        mu, sigma = ref[0], ref[1]
+                        members, _ = model.predict_members(obs, act, False)
+                        torch.testing.assert_close(mu, members.mean(0), rtol=1e-5, atol=1e-5)
+                        torch.testing.assert_close(sigma, members.std(0), rtol=1e-4, atol=1e-5)
+        model.fused_moments, model.inference_path, model.planning_dtype = True, "auto", None
+    raw = torch.randn(5, 8, 6)
+    with pytest.raises(ValueError, match=r"member_index outside \[0, 5\)"):
+        kernel(raw, torch.zeros(8, 3), torch.zeros(3), torch.ones(3), 3,
+                                        torch.full((8,), 5), with_logvar=True)
 
 
 @pytest.mark.parametrize("activation", [torch.nn.SiLU, torch.nn.ReLU, torch.nn.Tanh, torch.nn.ELU])

@@ -284,14 +284,14 @@ def test_tensor_loop_matches_the_torchrl_stack():
         obs = torch.randn(2, 1, 1, 3).expand(2, 5, particles, 3)
         acts = (torch.rand(2, 5, 1, 4, d) * 2 - 1).expand(2, 5, particles, 4, d)
         member = torch.arange(particles).expand(2, 5, particles) % 5 if particles > 1 else None
-        rows, network = [], base.world_model.network
-        base.world_model.network = lambda x, *a, **k: (rows.append(x.shape[0]), network(x, *a, **k))[1]
+        rows, network = [], base.world_model.network_output
+        base.world_model.network_output = lambda x, *a, **k: (rows.append(x.shape[0]), network(x, *a, **k))[1]
         base.set_seed(0)
         fast = base._returns_on_tensors(base._tensor_stack(tenv), obs, acts, member)
         assert rows == [10] + [10 * particles] * 3  # 2 x 5 candidates
         base.set_seed(0)
         slow = base._returns_through_step(tenv, obs, acts, member)
-        del base.world_model.network
+        del base.world_model.network_output
         torch.testing.assert_close(fast, slow)
     scaled = TransformedEnv(_model_env("mean"), Compose(UncertaintyReward(), RewardScaling(0.0, 2.0)))
     assert scaled.base_env._tensor_stack(scaled) is None

@@ -171,49 +171,52 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         the inputs, at ``1 / particles`` of the network's cost."""
         return self._propagate(observation, action, eta, member_index, particles)
 
-    def _mean_and_sigma(self, observation, action, member_index=None, particles=1):
-        """Members ``(L, *B, d_s)``, mu and sigma ``(*B, d_s)`` and the aleatoric std (of the
-        particle's member ``(*B, d_s)`` with ``member_index``, else ``(L, *B, d_s)``)."""
-        members, ale = self.world_model.predict_members(
-            observation, action, with_aleatoric=self.aleatoric_noise,
-            member_index=member_index if particles == 1 else None)  # shared rows: every member's, picked below
+    def _moments(self, observation, action, member_index=None, particles=1):
+        """``(mu, sigma, member_mean, aleatoric_std)``, each ``(*B, d_s)`` (see
+        :meth:`EnsembleWorldModel.predict_moments`); with ``particles`` > 1 the inputs are shared
+        by that many particles and the outputs ``(*B, particles, d_s)``."""
+        model = self.world_model
+        if particles == 1:
+            return model.predict_moments(observation, action, self.aleatoric_noise, member_index)
+        # shared rows: every member's mean, then each particle's member picked from them
+        members, ale = model.predict_members(observation, action, with_aleatoric=self.aleatoric_noise)
         mu = members.mean(0)
         sigma = ensemble_std(members, mu)
-        if particles == 1:
-            return members, mu, sigma, ale
         shape = (*mu.shape[:-2], particles, mu.shape[-1])
-        members, mu, sigma = members.expand(members.shape[0], *shape), mu.expand(shape), sigma.expand(shape)
-        if ale is not None:
-            ale = ale.expand(members.shape)
-            if member_index is not None:
-                ale = ale.gather(0, member_index.reshape(1, *shape[:-1], 1).expand(1, *shape)).squeeze(0)
-        return members, mu, sigma, ale
+        mu, sigma = mu.expand(shape), sigma.expand(shape)
+        member_mean = None
+        if member_index is not None:
+            idx = member_index.reshape(1, *shape[:-1], 1).expand(1, *shape)
+            member_mean = members.expand(members.shape[0], *shape).gather(0, idx).squeeze(0)
+            if ale is not None:
+                ale = ale.expand(members.shape[0], *shape).gather(0, idx).squeeze(0)
+        elif ale is not None:
+            ale = ale.square().mean(0).sqrt().expand(shape)
+        return mu, sigma, member_mean, ale
 
     def _with_noise(self, nxt, noise_std):
         return nxt if noise_std is None else nxt + noise_std * self._randn(nxt.shape, nxt)
 
     def _propagate_mean(self, observation, action, eta, member_index, particles=1):
-        _, mu, sigma, ale = self._mean_and_sigma(observation, action, particles=particles)
-        return self._with_noise(mu, None if ale is None else ale.square().mean(0).sqrt()), sigma
+        mu, sigma, _, ale = self._moments(observation, action, particles=particles)
+        return self._with_noise(mu, ale), sigma
 
     def _propagate_optimistic(self, observation, action, eta, member_index, particles=1):
-        _, mu, sigma, ale = self._mean_and_sigma(observation, action, particles=particles)
         if eta is None:
             raise KeyError("mode='optimistic' needs the hallucinated control 'eta' in the tensordict")
         if eta.shape != observation.shape:  # eta perturbs the state it comes with
             raise ValueError(f"'eta' has shape {tuple(eta.shape)}, expected {tuple(observation.shape)}")
-        nxt = torch.addcmul(mu, sigma, eta)
-        return self._with_noise(nxt, None if ale is None else ale.square().mean(0).sqrt()), sigma
+        mu, sigma, _, ale = self._moments(observation, action, particles=particles)
+        return self._with_noise(torch.addcmul(mu, sigma, eta), ale), sigma
 
     def _propagate_sample(self, observation, action, eta, member_index, particles=1):
         if member_index is None:
             shape = observation.shape[:-1] if particles == 1 else (*observation.shape[:-2], particles)
             member_index = torch.randint(self.world_model.ensemble_size, shape,
                                          generator=self._generator, device=observation.device)
-        members, mu, sigma, ale = self._mean_and_sigma(observation, action, member_index, particles)
-        idx = member_index.reshape(1, *mu.shape[:-1], 1).expand(1, *mu.shape)
-        # trajectory sampling: ``ale`` is already the assigned member's
-        return self._with_noise(members.gather(0, idx).squeeze(0), ale), sigma
+        # trajectory sampling: the particle's own member, with that member's aleatoric noise
+        _, sigma, member_mean, ale = self._moments(observation, action, member_index, particles)
+        return self._with_noise(member_mean, ale), sigma
 
     # ------------------------------------------------------------------ stepping
     def _check_action(self, action: torch.Tensor) -> None:

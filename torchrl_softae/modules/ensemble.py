@@ -26,6 +26,7 @@ from torch import nn
 from torch.nn import functional as F
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
+from torchrl_softae.modules import moments_kernel as _moments_kernel
 from torchrl_softae.modules import paths
 from torchrl_softae.modules import silu_kernel as _silu_kernel
 from torchrl_softae.modules.paths import INFERENCE_PATHS
@@ -375,20 +376,27 @@ class EnsembleWorldModel(TensorDictModuleBase):
             ``None`` if not probabilistic or not requested).
         """
         d = self.observation_dim
-        want_logvar = self.probabilistic and with_logvar
+        y = self.network_output(x, with_logvar).float()
+        if not (self.probabilistic and with_logvar):
+            return y[..., :d], None
+        return y[..., :d], (self._bound_logvar(y[..., d:]) if bound_logvar else y[..., d:])
+
+    def network_output(self, x: torch.Tensor, with_logvar: bool = True) -> torch.Tensor:
+        """Raw ensemble on normalized inputs: the last layer's output ``(L, N, C)`` as the
+        inference path leaves it (in the planning dtype, possibly a strided view of the layer's
+        buffer). Columns ``[:d_s]`` are the normalized delta means, ``[d_s:]`` the raw
+        log-variances (when probabilistic and ``with_logvar``). Every prediction goes through
+        here: :meth:`network`, :meth:`predict_members` and :meth:`predict_moments`."""
+        d = self.observation_dim
         last = len(self.layers) - 1
         if torch.is_grad_enabled():  # training: plain autograd-friendly layers
             for layer in self.layers[:last]:
                 x = self.activation(layer(x))
-            y = self.layers[last](x)
-        else:
-            lowp = self.planning_dtype or torch.float32
-            cols = None if (want_logvar or not self.probabilistic) else d  # both heads in one matmul
-            path = self._inference_path(x, lowp, cols) if x.dim() == 2 else "bmm"
-            y = self._run_path(path, x, lowp, cols)
-        if not want_logvar:
-            return y[..., :d], None
-        return y[..., :d], (self._bound_logvar(y[..., d:]) if bound_logvar else y[..., d:])
+            return self.layers[last](x)
+        lowp = self.planning_dtype or torch.float32
+        cols = None if (with_logvar or not self.probabilistic) else d  # both heads in one matmul
+        path = self._inference_path(x, lowp, cols) if x.dim() == 2 else "bmm"
+        return self._run_path(path, x, lowp, cols)
 
     #: ``"auto"`` (measured once per device, dtype and row count; see :mod:`torchrl_softae.modules.paths`)
     #: or one of :data:`~torchrl_softae.modules.paths.INFERENCE_PATHS`; the environment variable
@@ -481,7 +489,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         the separate activation pass cost a third of a plan on a CPU with AMX.
         ``silu_kernel``: the separate activation pass by the compiled SiLU (:mod:`.silu_kernel`).
 
-        Returns the ``(L, N, out)`` output as a view of an ``(N, L, out)`` buffer.
+        Returns the ``(L, N, out)`` output in ``dtype`` as a view of an ``(N, L, out)`` buffer.
         """
         L, n = self.ensemble_size, x.shape[0]
         h = x.to(dtype).t().unsqueeze(0).unsqueeze(-1)  # (1, in, N, 1), channels-last view of x
@@ -500,7 +508,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
             if i < last and fuse is None:
                 h = self._activate_(h, silu_kernel)
         # (1, L * out, N, 1) channels-last is an (N, L * out) buffer: view it as (L, N, out)
-        return h.squeeze(0).squeeze(-1).t().reshape(n, L, -1).transpose(0, 1).float()
+        return h.squeeze(0).squeeze(-1).t().reshape(n, L, -1).transpose(0, 1)
 
     def _pack_rows(self, rows: int) -> int:
         """The row count to pack convolution weights for: ``rows`` itself for the first
@@ -563,7 +571,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         # round to bf16): test_bf16_ranking_matches_fp32 checks that sigma-driven returns keep
         # their ranking (Spearman >= 0.95) on a trained model.
         w, b = self._inference_weights(self.layers[-1], dtype, k, cols)
-        return torch.baddbmm(b, x, w).reshape(L, n, -1).float()
+        return torch.baddbmm(b, x, w).reshape(L, n, -1)
 
     def _fused_activation(self) -> str | None:
         """oneDNN's post-op name of the hidden activation, or ``None`` where it has none (or this
@@ -599,8 +607,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
         ``observation`` ``(N, d_s)`` and ``action`` ``(N, d_a)`` (shared by all members), or with a
         leading member dim ``(L, N, ...)`` (each member on its own minibatch, for training).
         """
-        x = self.input_normalizer.normalize(torch.cat([self._to_model_space(observation), action], -1))
-        return self.network(x, with_logvar, bound_logvar)
+        return self.network(self._normalized_input(observation, action), with_logvar, bound_logvar)
+
+    def _normalized_input(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.input_normalizer.normalize(torch.cat([self._to_model_space(observation), action], -1))
 
     def predict_members(
         self, observation: torch.Tensor, action: torch.Tensor, with_aleatoric: bool = True,
@@ -620,29 +630,98 @@ class EnsembleWorldModel(TensorDictModuleBase):
         batch = observation.shape[:-1]
         obs = observation.reshape(-1, self.observation_dim)
         act = action.reshape(-1, self.action_dim)
-        mean, logvar = self.normalized_members(obs, act, with_aleatoric, bound_logvar=member_index is None)
+        raw = self.network_output(self._normalized_input(obs, act), with_aleatoric)
+        return self._members_from_output(raw, obs, batch, with_aleatoric, member_index)
+
+    def _members_from_output(self, raw, obs, batch, with_aleatoric, member_index):
+        """:meth:`predict_members` from the raw network output ``raw`` ``(L, N, C)`` at the flat
+        states ``obs`` ``(N, d_s)``."""
+        d = self.observation_dim
+        y = raw.float()
+        mean = y[..., :d]
+        logvar = y[..., d:] if (self.probabilistic and with_aleatoric) else None
+        if logvar is not None and member_index is None:
+            logvar = self._bound_logvar(logvar)
         out = self.output_normalizer
         members = torch.addcmul(self._to_model_space(obs) + out.loc, out.scale, mean)
         # symexp'(y) = exp(|y|): the aleatoric std maps back to original units to first order
         stretch = members.abs().exp() if self.symlog_observations else None
         if self.symlog_observations:
             members = symexp(members)
-        shape = (self.ensemble_size, *batch, self.observation_dim)
+        shape = (self.ensemble_size, *batch, d)
         if not with_aleatoric:
             return members.reshape(shape), None
-        if logvar is None:
+        if logvar is None:  # deterministic members: no aleatoric noise
             ale = torch.zeros_like(members)
+            if member_index is not None:
+                return members.reshape(shape), ale[0].reshape(*batch, d)
         elif member_index is not None:
             idx = member_index.reshape(1, -1, 1).expand(1, *logvar.shape[1:])
             ale = out.scale * (0.5 * self._bound_logvar(logvar.gather(0, idx).squeeze(0))).exp()
             if stretch is not None:
                 ale = ale * stretch.gather(0, idx).squeeze(0)
-            return members.reshape(shape), ale.reshape(*batch, self.observation_dim)
+            return members.reshape(shape), ale.reshape(*batch, d)
         else:
             ale = out.scale * (0.5 * logvar).exp()
             if stretch is not None:
                 ale = ale * stretch
         return members.reshape(shape), ale.reshape(shape)
+
+    #: compute mu and sigma (and a sampled member's mean) in one pass over the network output with
+    #: the compiled kernel (:mod:`.moments_kernel`) where it applies; ``False``: torch ops (to compare)
+    fused_moments: bool = True
+
+    def predict_moments(
+        self, observation: torch.Tensor, action: torch.Tensor, with_aleatoric: bool = False,
+        member_index: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """What propagation needs from the ensemble at ``(s, a)``, without the member means.
+
+        Args:
+            observation: ``(*B, d_s)``; action: ``(*B, d_a)``.
+            with_aleatoric: also return the aleatoric std.
+            member_index: ``(*B,)`` member per row (trajectory sampling), or ``None``.
+
+        Returns:
+            ``mu`` [mu] and ``sigma`` [sigma] ``(*B, d_s)``; the mean of member ``member_index``
+            ``(*B, d_s)`` (``None`` without it); the aleatoric std ``(*B, d_s)``: that member's, or
+            without ``member_index`` the root mean square over the members (``None`` unless
+            ``with_aleatoric``).
+
+        At inference on a CPU with AVX-512 this is one pass over the network's output, in its
+        dtype, where the member means are never materialized (``fused_moments``,
+        :mod:`.moments_kernel`); elsewhere the torch ops of :meth:`predict_members`. Both give the
+        same values to fp32 rounding (``test_fused_moments_match_the_torch_ops``).
+        """
+        d = self.observation_dim
+        batch = observation.shape[:-1]
+        obs = observation.reshape(-1, d)
+        act = action.reshape(-1, self.action_dim)
+        if member_index is not None:
+            member_index = member_index.reshape(-1)
+        raw = self.network_output(self._normalized_input(obs, act), with_aleatoric)
+        fused = (self.fused_moments and not self.symlog_observations and _moments_kernel.applies(raw)
+                 and (member_index is not None or not with_aleatoric))
+        if fused:
+            with_logvar = with_aleatoric and self.probabilistic
+            out = self.output_normalizer
+            mu, sigma, member_mean, logvar = _moments_kernel.ensemble_moments(
+                raw, obs, out.loc, out.scale, d, member_index, with_logvar)
+            ale = None
+            if with_aleatoric:
+                ale = out.scale * (0.5 * self._bound_logvar(logvar)).exp() if with_logvar else torch.zeros_like(mu)
+        else:
+            members, ale = self._members_from_output(raw, obs, (obs.shape[0],), with_aleatoric, member_index)
+            mu = members.mean(0)
+            sigma = ensemble_std(members, mu)
+            member_mean = None
+            if member_index is not None:
+                member_mean = members.gather(0, member_index.reshape(1, -1, 1).expand(1, *mu.shape)).squeeze(0)
+            elif ale is not None:
+                ale = ale.square().mean(0).sqrt()
+        shape = (*batch, d)
+        return (mu.reshape(shape), sigma.reshape(shape), None if member_mean is None else member_mean.reshape(shape),
+                None if ale is None else ale.reshape(shape))
 
     def predict(
         self, observation: torch.Tensor, action: torch.Tensor, check: bool = True

@@ -1,0 +1,158 @@
+/* The ensemble's moments in one pass over its raw output, for planning (fp32 or bf16 input).
+ *
+ * For each row n and state dimension j, from the normalized member deltas y_l (the last layer's
+ * output, in the planner's dtype) and the state s:
+ *     m_l   = (s + loc) + scale * y_l                        member means       (l = 0..L-1)
+ *     mu    = 1/L sum_l m_l                                  [mu]
+ *     sigma = sqrt(1/(L-1) sum_l (m_l - mu)^2)               [sigma]
+ * and, given a member per row (trajectory sampling), that member's m_l and raw log-variance.
+ *
+ * Why: done with torch ops this is about ten passes over (L, N, d_s) tensors (the bf16-to-fp32
+ * copy, the member means, mean, centring, square, sum, the member gather), each a kernel launch;
+ * at the 2060 rows of a 10-particle plan the (L, N, d_s) tensors leave the L2 cache. Here each
+ * row is read once, where it lies in the network's output buffer (any member and row stride), and
+ * only the (N, d_s) results are written. benchmarks/planning_speed.py --loop-overhead measures it.
+ *
+ * The arithmetic is the torch ops' in the same order (members summed in order, then scaled by
+ * 1/L; squared deviations likewise), with separate multiplies and adds, so results agree with
+ * them to rounding. AVX-512 (F, BW, VL) only, checked at run time: elsewhere supported() is 0 and
+ * the ensemble runs the torch ops. Built as the optional extension torchrl_softae.modules._moments
+ * (pyproject.toml); OpenMP threads are torch's own (see silu.c).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <stdint.h>
+
+enum { DTYPE_FLOAT32 = 0, DTYPE_BFLOAT16 = 1 };
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
+#define SOFTAE_X86 1
+#endif
+
+typedef struct {
+    const char *y;            /* network output, element (l, n, j) at y + (l * sm + n * sn + j) * size */
+    int64_t sm, sn;           /* member and row strides, in elements */
+    int dtype;                /* DTYPE_FLOAT32 or DTYPE_BFLOAT16 */
+    int64_t L, d;             /* members, state dimensions */
+    int64_t logvar_offset;    /* column of the log-variance head (d), or -1 without it */
+    const float *state;       /* (N, d) contiguous, the model-space state s */
+    const float *loc, *scale; /* (d,) output normalizer */
+    const int64_t *member;    /* (N,) member per row, or NULL */
+    float *mu, *sigma;        /* (N, d) outputs */
+    float *picked, *picked_logvar; /* (N, d) outputs with member (picked_logvar only with the head) */
+} moments_args;
+
+#ifdef SOFTAE_X86
+/* ------------------------------------------------------------------ AVX-512
+ * Sixteen state dimensions per vector (the last one masked), every member's mean kept in a
+ * register between the sum and the squared deviations: each output element is read once. */
+#define MAX_VECTOR_MEMBERS 16
+
+__attribute__((target("avx512f,avx512bw,avx512vl"))) static inline __m512 load_avx512(const moments_args *a, int64_t offset,
+                                                                             __mmask16 m) {
+    if (a->dtype == DTYPE_FLOAT32) return _mm512_maskz_loadu_ps(m, (const float *)a->y + offset);
+    __m256i h = _mm256_maskz_loadu_epi16(m, (const uint16_t *)a->y + offset);
+    return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(h), 16));
+}
+
+__attribute__((target("avx512f,avx512bw,avx512vl"))) static void moments_row_avx512(const moments_args *a, int64_t n) {
+    const int64_t L = a->L, d = a->d, row = n * a->sn;
+    const __m512 inv_l = _mm512_set1_ps(1.0f / (float)L), inv_dof = _mm512_set1_ps(1.0f / (float)(L > 1 ? L - 1 : 1));
+    __m512 m[MAX_VECTOR_MEMBERS];
+    for (int64_t j = 0; j < d; j += 16) {
+        const __mmask16 k = d - j >= 16 ? (__mmask16)0xffff : (__mmask16)((1u << (d - j)) - 1u);
+        const __m512 base = _mm512_add_ps(_mm512_maskz_loadu_ps(k, a->state + n * d + j), _mm512_maskz_loadu_ps(k, a->loc + j));
+        const __m512 sc = _mm512_maskz_loadu_ps(k, a->scale + j);
+        __m512 sum = _mm512_setzero_ps(), ss = _mm512_setzero_ps();
+        for (int64_t l = 0; l < L; l++) {
+            m[l] = _mm512_add_ps(base, _mm512_mul_ps(sc, load_avx512(a, l * a->sm + row + j, k)));
+            sum = _mm512_add_ps(sum, m[l]);
+        }
+        const __m512 mean = _mm512_mul_ps(sum, inv_l);
+        for (int64_t l = 0; l < L; l++) {
+            const __m512 c = _mm512_sub_ps(m[l], mean);
+            ss = _mm512_add_ps(ss, _mm512_mul_ps(c, c));
+        }
+        _mm512_mask_storeu_ps(a->mu + n * d + j, k, mean);
+        _mm512_mask_storeu_ps(a->sigma + n * d + j, k, _mm512_sqrt_ps(_mm512_mul_ps(ss, inv_dof)));
+        if (a->member != NULL) {
+            const int64_t l = a->member[n];
+            _mm512_mask_storeu_ps(a->picked + n * d + j, k, m[l]);
+            if (a->logvar_offset >= 0)
+                _mm512_mask_storeu_ps(a->picked_logvar + n * d + j, k, load_avx512(a, l * a->sm + row + a->logvar_offset + j, k));
+        }
+    }
+}
+
+static int cpu_supported(void) {
+    __builtin_cpu_init();
+    /* libgcc's feature bits include the OS check (XCR0) that the AVX-512 state is enabled */
+    return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512vl");
+}
+#else
+static int cpu_supported(void) { return 0; }
+#endif
+
+/* below this many elements one thread does it all (waking the other costs more) */
+#define MIN_PARALLEL_ELEMENTS ((int64_t)32768)
+
+static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
+    unsigned long long y, state, loc, scale, member, mu, sigma, picked, picked_logvar;
+    long long sm, sn, L, N, d, logvar_offset;
+    int dtype, threads;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "KLLiLLLLKKKKKKKKi", &y, &sm, &sn, &dtype, &L, &N, &d, &logvar_offset, &state, &loc,
+                          &scale, &member, &mu, &sigma, &picked, &picked_logvar, &threads))
+        return NULL;
+    if (dtype != DTYPE_FLOAT32 && dtype != DTYPE_BFLOAT16) {
+        PyErr_Format(PyExc_ValueError, "ensemble_moments: dtype code %d, expected 0 (float32) or 1 (bfloat16)", dtype);
+        return NULL;
+    }
+    if (!cpu_supported()) {
+        PyErr_SetString(PyExc_RuntimeError, "ensemble_moments: this CPU lacks AVX-512 (F, BW, VL)");
+        return NULL;
+    }
+    if (L < 1 || L > MAX_VECTOR_MEMBERS || N < 0 || d < 1 || !y || !state || !loc || !scale || !mu || !sigma || (member && !picked)
+        || (member && logvar_offset >= 0 && !picked_logvar)) {
+        PyErr_Format(PyExc_ValueError, "ensemble_moments: L=%lld (expected 1..%d), N=%lld, d=%lld, or a null address",
+                     L, MAX_VECTOR_MEMBERS, N, d);
+        return NULL;
+    }
+    moments_args a = {(const char *)(uintptr_t)y, sm, sn, dtype, L, d, logvar_offset,
+                      (const float *)(uintptr_t)state, (const float *)(uintptr_t)loc, (const float *)(uintptr_t)scale,
+                      (const int64_t *)(uintptr_t)member, (float *)(uintptr_t)mu, (float *)(uintptr_t)sigma,
+                      (float *)(uintptr_t)picked, (float *)(uintptr_t)picked_logvar};
+    if (threads < 1) threads = 1;
+    const int parallel = threads > 1 && N * L * d >= MIN_PARALLEL_ELEMENTS;
+#ifdef SOFTAE_X86
+    Py_BEGIN_ALLOW_THREADS
+#pragma omp parallel for num_threads(threads) schedule(static) if (parallel)
+    for (int64_t n = 0; n < (int64_t)N; n++) moments_row_avx512(&a, n);
+    Py_END_ALLOW_THREADS
+#else
+    (void)a;
+    (void)parallel;
+#endif
+    Py_RETURN_NONE;
+}
+
+static PyObject *supported(PyObject *self, PyObject *unused) {
+    (void)self;
+    (void)unused;
+    return PyBool_FromLong(cpu_supported());
+}
+
+static PyMethodDef METHODS[] = {
+    {"supported", supported, METH_NOARGS, "whether this CPU runs the kernel (AVX-512 F, BW and VL)"},
+    {"ensemble_moments", ensemble_moments, METH_VARARGS,
+     "ensemble_moments(y, member_stride, row_stride, dtype, L, N, d, logvar_offset, state, loc, scale, member, "
+     "mu, sigma, picked, picked_logvar, threads): mu and sigma (and a picked member's mean and raw "
+     "log-variance) of an ensemble's raw output; addresses of contiguous float32 buffers, 0 for none"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef MODULE = {PyModuleDef_HEAD_INIT, "_moments", "ensemble mean and epistemic std in one pass",
+                                    -1, METHODS, NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__moments(void) { return PyModule_Create(&MODULE); }

@@ -1,0 +1,84 @@
+"""The compiled one-pass ensemble moments (``torchrl_softae/csrc/moments.c``) for planning.
+
+From the ensemble's raw output (normalized member deltas, in the planner's dtype, read where they
+lie in the network's output buffer) it computes the mean [mu] and epistemic std [sigma] of the
+member means, and for trajectory sampling one member's mean and raw log-variance per row, without
+materializing the ``(L, N, d_s)`` member means. Built at install time where a C compiler is
+present (an optional extension: without it :func:`available` is ``False`` and
+:class:`~torchrl_softae.modules.EnsembleWorldModel` runs the same arithmetic as torch ops).
+"""
+from __future__ import annotations
+
+import torch
+
+try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
+    from torchrl_softae.modules import _moments
+except ImportError:
+    _moments = None
+if _moments is not None and not _moments.supported():  # built, but this CPU lacks AVX-512
+    _moments = None
+
+#: members the kernel keeps in registers (``MAX_VECTOR_MEMBERS`` in moments.c)
+MAX_MEMBERS = 16
+
+__all__ = ["MAX_MEMBERS", "available", "applies", "ensemble_moments"]
+
+_DTYPE_CODES = {torch.float32: 0, torch.bfloat16: 1}
+
+
+def available() -> bool:
+    """Whether the extension was built and runs on this CPU (AVX-512 F, BW and VL)."""
+    return _moments is not None
+
+
+def applies(output: torch.Tensor) -> bool:
+    """Whether :func:`ensemble_moments` can run on this ``(L, N, C)`` network ``output`` (CPU, fp32
+    or bf16, unit stride along ``C``, at most :data:`MAX_MEMBERS` members, no autograd)."""
+    return (_moments is not None and output.device.type == "cpu" and output.dtype in _DTYPE_CODES
+            and output.dim() == 3 and output.shape[0] <= MAX_MEMBERS and output.stride(-1) == 1
+            and not output.requires_grad)
+
+
+def ensemble_moments(
+    output: torch.Tensor, state: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor, d: int,
+    member_index: torch.Tensor | None = None, with_logvar: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """Moments of the member means ``m_l = state + loc + scale * output[l, :, :d]``.
+
+    Args:
+        output: ``(L, N, C)`` raw network output, fp32 or bf16, any member and row strides (unit
+            stride along ``C``); the normalized delta means are its first ``d`` columns and, with
+            ``with_logvar``, the raw log-variances the next ``d``.
+        state: ``(N, d)`` the state in the model's space; loc, scale: ``(d,)`` the output
+            normalizer.
+        member_index: ``(N,)`` int64, the member each row follows (trajectory sampling), or ``None``.
+
+    Returns:
+        ``mu`` and ``sigma`` ``(N, d)`` [mu, sigma; sigma with Bessel's correction], and with
+        ``member_index`` that member's mean and (with ``with_logvar``) raw log-variance ``(N, d)``,
+        else ``None``. All fp32. Only where :func:`applies` holds.
+    """
+    L, n, cols = output.shape
+    if cols < (2 * d if with_logvar else d):
+        raise ValueError(f"ensemble_moments: output has {cols} columns, expected at least {2 * d if with_logvar else d}")
+    state, loc, scale = (t.float().contiguous() for t in (state, loc.reshape(d), scale.reshape(d)))
+    if state.shape != (n, d):
+        raise ValueError(f"ensemble_moments: state has shape {tuple(state.shape)}, expected ({n}, {d})")
+    mu = torch.empty(n, d)
+    sigma = torch.empty(n, d)
+    picked = picked_logvar = None
+    member_address = 0
+    if member_index is not None:
+        member_index = member_index.reshape(n).to(torch.int64).contiguous()
+        lo, hi = torch.aminmax(member_index) if n else (0, 0)
+        if not (0 <= int(lo) and int(hi) < L):  # the kernel reads the member's row: never out of bounds
+            raise ValueError(f"ensemble_moments: member_index outside [0, {L})")
+        member_address = member_index.data_ptr()
+        picked = torch.empty(n, d)
+        picked_logvar = torch.empty(n, d) if with_logvar else None
+    _moments.ensemble_moments(
+        output.data_ptr(), output.stride(0), output.stride(1), _DTYPE_CODES[output.dtype], L, n, d,
+        d if with_logvar else -1, state.data_ptr(), loc.data_ptr(), scale.data_ptr(), member_address,
+        mu.data_ptr(), sigma.data_ptr(), 0 if picked is None else picked.data_ptr(),
+        0 if picked_logvar is None else picked_logvar.data_ptr(), torch.get_num_threads())
+    return mu, sigma, picked, picked_logvar
