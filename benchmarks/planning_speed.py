@@ -21,6 +21,8 @@ reported as median and best, so a noisy machine cannot make one ratio out of one
   icem-deadline     SoftAE bf16 with a 50 ms wall-clock budget per action
   ...@PATH          (--compare-paths) the four icem rows with the ensemble's inference path fixed
                     (each of EnsembleWorldModel.available_inference_paths()) instead of measured at first use
+  ...@torch-moments (--compare-moments) the four icem rows with mu and sigma computed by torch ops
+                    (EnsembleWorldModel.fused_moments = False) instead of the one-pass kernel
 
 ``--layer-costs`` also times ONE hidden layer (L=5 members, 256 -> 256) at the planner's row counts
 (206 = 200 candidates + 6 kept elites with one particle, 2060 with ten): the GEMM alone
@@ -30,8 +32,9 @@ interleaved. Where the activation costs about as much as
 the GEMM, no GEMM speed-up can make the layer much faster: "layer bf16/fp32" is the bound.
 
 ``--loop-overhead`` times one SoftAE candidate evaluation (``evaluate_action_sequences``, one
-particle, the arm's shape) against a hand-written loop of the same arithmetic (checked equal) and
-against its network calls alone: what the horizon loop costs beyond the model.
+particle, the arm's shape) against the same with mu and sigma by torch ops, a hand-written loop of
+the same arithmetic (torch ops, checked equal) and its network calls alone: what the horizon loop
+costs beyond the model.
 
 Prints the CPU (vendor, AVX-512, AVX512-BF16, AMX), the GEMM peaks of every path measured in the
 same run (MKL ``a @ b`` and oneDNN 1x1 convolution, fp32 and bf16), and "% of peak" against the
@@ -62,7 +65,7 @@ from torchrl.modules import CEMPlanner
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
 from torchrl_softae.modules.ensemble import ensemble_std
-from torchrl_softae.modules import silu_kernel
+from torchrl_softae.modules import moments_kernel, silu_kernel
 from torchrl_softae.modules.precision import cpu_flags
 
 SHAPES = [  # (name, d_s, d_a, H)
@@ -203,8 +206,9 @@ def print_layer_costs(rows: list[dict]) -> None:
 def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10) -> list[dict]:
     """Median milliseconds of one SoftAE candidate evaluation (``evaluate_action_sequences``, the
     ``HallucinatedControl`` + ``UncertaintyReward`` stack, one particle, P + kept elites rows, H
-    steps) against a hand-written loop of the same arithmetic and against the H network calls
-    alone, fp32 and bf16, interleaved. The hand-written loop's returns must equal ours."""
+    steps) against the same with mu and sigma by torch ops, a hand-written loop of the same arithmetic
+    and the H network calls alone, fp32 and bf16, interleaved. The hand-written loop's returns must
+    equal ours."""
     model = make_model(d_s, d_a)
     base = EnsembleModelEnv(model, mode="optimistic")
     env = TransformedEnv(base, Compose(HallucinatedControl(2.0), UncertaintyReward()))
@@ -215,8 +219,14 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10) -> li
     x = torch.randn(rows, d_s + d_a, generator=g)
     inn, out_norm = model.input_normalizer, model.output_normalizer
 
-    def ours(prec):
-        return lambda: base.evaluate_action_sequences(start, seqs, num_particles=1, env=env, precision=prec)[0]
+    def ours(prec, fused_moments=True):
+        def fn():
+            model.fused_moments = fused_moments
+            try:
+                return base.evaluate_action_sequences(start, seqs, num_particles=1, env=env, precision=prec)[0]
+            finally:
+                model.fused_moments = True
+        return fn
 
     def hand(dtype):
         def fn():
@@ -243,9 +253,12 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10) -> li
             model.planning_dtype = None
         return fn
 
+    parts = ["ours", "hand", "network"] + (["ours_torch_moments"] if moments_kernel.available() else [])
     jobs = {}
     for name, dtype in (("fp32", None), ("bf16", torch.bfloat16)):
         jobs[(name, "ours")], jobs[(name, "hand")], jobs[(name, "network")] = ours(name), hand(dtype), network(dtype)
+        if "ours_torch_moments" in parts:  # mu and sigma by torch ops, as the hand-written loop computes them
+            jobs[(name, "ours_torch_moments")] = ours(name, fused_moments=False)
     with torch.no_grad():
         for name in ("fp32", "bf16"):
             a, b = jobs[(name, "ours")](), jobs[(name, "hand")]()
@@ -258,17 +271,20 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10) -> li
                 fn()
                 times[key].append(time.perf_counter() - t)
     return [{"dtype": name, "rows": rows, "H": H,
-             **{f"{part}_ms": 1e3 * statistics.median(times[(name, part)]) for part in ("ours", "hand", "network")}}
+             **{f"{part}_ms": 1e3 * statistics.median(times[(name, part)]) for part in parts}}
             for name in ("fp32", "bf16")]
 
 
 def print_loop_overhead(rows: list[dict]) -> None:
+    torch_moments = "ours_torch_moments_ms" in rows[0]
     print(f"\n| one SoftAE candidate evaluation (58, 12), {rows[0]['rows']} rows, H={rows[0]['H']} | ours [ms] "
-          "| hand-written loop [ms] | network calls alone [ms] | network share of ours |")
-    print("|---|---|---|---|---|")
+          + ("| ours, mu and sigma by torch ops [ms] " if torch_moments else "")
+          + "| hand-written loop [ms] | network calls alone [ms] | network share of ours |")
+    print("|---|---|---|---|---|" + ("---|" if torch_moments else ""))
     for r in rows:
-        print(f"| {r['dtype']} | {r['ours_ms']:.1f} | {r['hand_ms']:.1f} | {r['network_ms']:.1f} "
-              f"| {100 * r['network_ms'] / r['ours_ms']:.0f}% |")
+        print(f"| {r['dtype']} | {r['ours_ms']:.1f} | "
+              + (f"{r['ours_torch_moments_ms']:.1f} | " if torch_moments else "")
+              + f"{r['hand_ms']:.1f} | {r['network_ms']:.1f} | {100 * r['network_ms'] / r['ours_ms']:.0f}% |")
 
 
 def flops_per_row(model, with_logvar: bool = True) -> int:
@@ -336,6 +352,8 @@ def main():
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--compare-paths", action="store_true",
                    help="also time the icem rows with each inference path fixed (every available one)")
+    p.add_argument("--compare-moments", action="store_true",
+                   help="also time the icem rows with mu and sigma by torch ops instead of the one-pass kernel")
     p.add_argument("--layer-costs", action="store_true",
                    help="also time one hidden layer's GEMM, SiLU and fused GEMM + SiLU at the planner's row counts")
     p.add_argument("--loop-overhead", action="store_true",
@@ -352,7 +370,8 @@ def main():
     pk = peaks()
     print(f"# planning_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}")
-    print(f"compiled SiLU kernel: {silu_kernel.isa() or 'not built (torch SiLU only)'}", flush=True)
+    print(f"compiled SiLU kernel: {silu_kernel.isa() or 'not built (torch SiLU only)'}; one-pass moments kernel: "
+          f"{'yes' if moments_kernel.available() else 'no (not built, or no AVX-512: torch ops)'}", flush=True)
     try:
         import mbrl  # noqa: F401
 
@@ -360,7 +379,8 @@ def main():
     except Exception as e:  # noqa: BLE001
         have_mbrl = False
         print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} ({MBRL_INSTALL})")
-    results = {"cpu": cpu, "silu_kernel_isa": silu_kernel.isa(), "threads": args.threads,
+    results = {"cpu": cpu, "silu_kernel_isa": silu_kernel.isa(), "moments_kernel": moments_kernel.available(),
+               "threads": args.threads,
                "repeats": repeats, "rows": []}
     timed = []  # per shape: what the table needs once every round (and every peak) is measured
     for name, d_s, d_a, H in shapes:
@@ -388,22 +408,34 @@ def main():
                     prec = "bf16" if "bf16" in key else "fp32"
                     planners[f"{key}@{path}"] = (ICEMPlanner(env, precision=prec, **icem), prec, None)
                     path_of[f"{key}@{path}"] = path
+        torch_moments = set()  # contenders whose mu and sigma are torch ops (the kernel's baseline)
+        if args.compare_moments and moments_kernel.available():
+            for key in ("icem-fp32-full", "icem-bf16-full", "icem-fp32-dedup", "icem-bf16-dedup"):
+                env = sample_env if "full" in key else opt_env
+                prec = "bf16" if "bf16" in key else "fp32"
+                planners[f"{key}@torch-moments"] = (ICEMPlanner(env, precision=prec, **icem), prec, None)
+                torch_moments.add(f"{key}@torch-moments")
+
+        def configure(key):  # the model as this contender runs it
+            model.inference_path = path_of.get(key, "auto")
+            model.fused_moments = key not in torch_moments
+
         times = {k: [] for k in planners}
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")
             for key, (planner, *_) in planners.items():
-                model.inference_path = path_of.get(key, "auto")
+                configure(key)
                 planner(obs.clone())  # warm-up (allocations, weight caches, path measurement)
             for _ in range(repeats):  # interleaved: one action of each contender per round
                 for key, (planner, *_) in planners.items():
-                    model.inference_path = path_of.get(key, "auto")
+                    configure(key)
                     if hasattr(planner, "reset"):
                         planner.reset()
                     t = time.perf_counter()
                     planner(obs.clone())
                     times[key].append(time.perf_counter() - t)
                 pk = peaks(repeats=2, so_far=pk)  # between rounds, so a noisy moment cannot set the peak
-        model.inference_path = "auto"
+        model.inference_path, model.fused_moments = "auto", True
         chosen = sorted({f"{'bf16' if k[0] == torch.bfloat16 else 'fp32'} rows<={k[1]}: {v}"
                          for k, v in model._path_memo.items() if isinstance(v, str)})
         timed.append((name, d_s, d_a, H, model, sample_env, planners, times, chosen))
