@@ -24,7 +24,8 @@ reported as median and best, so a noisy machine cannot make one ratio out of one
   ...@torch-moments (--compare-moments) the four icem rows with mu and sigma computed by torch ops
                     (EnsembleWorldModel.fused_moments = False) instead of the one-pass kernel
 
-``--layer-costs`` also times ONE hidden layer (L=5 members, 256 -> 256) at the planner's row counts
+``--layer-costs`` also times the arm-sized network as the planner runs it, fp32 and bf16 (its
+ratio bounds bf16/fp32 of a plan), and ONE hidden layer (L=5 members, 256 -> 256) at the planner's row counts
 (206 = 200 candidates + 6 kept elites with one particle, 2060 with ten): the GEMM alone
 (batched matmul), its SiLU alone (in place: torch's, and the compiled kernel where it was built),
 and both in one oneDNN call (grouped convolution with the SiLU as a post-op), fp32 and bf16,
@@ -142,12 +143,21 @@ def peaks(n=2048, repeats=10, so_far: dict | None = None) -> dict:
 
 
 def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256) -> list[dict]:
-    """Median microseconds of one hidden layer's GEMM, its SiLU and the fused GEMM + SiLU, per
-    dtype and row count (``repeats`` interleaved rounds of ``calls`` calls each)."""
+    """Median microseconds of one hidden layer's GEMM, its SiLU and the fused GEMM + SiLU, and of
+    the whole arm-sized network (``network_output``, every layer as the planner runs it: the
+    inference path measured at first use, the log-variance head with 10 particles, as PETS-AE
+    needs it), per dtype and row count (``repeats`` interleaved rounds of ``calls`` calls each)."""
     F = torch.nn.functional
     rows_of = {"1 particle": P + KEPT, "10 particles": (P + KEPT) * N}
+    model = make_model(58, 12)
     jobs = {}
     for label, n in rows_of.items():
+        x_in = torch.randn(n, 70, generator=torch.Generator().manual_seed(0))
+        for dtype in (None, torch.bfloat16):
+            def network(dtype=dtype, x_in=x_in, with_logvar=label == "10 particles"):
+                model.planning_dtype = dtype
+                model.network_output(x_in, with_logvar)
+            jobs[(label, "bf16" if dtype else "fp32", "network")] = network
         for dtype in (torch.float32, torch.bfloat16):
             g = torch.Generator().manual_seed(0)
             x = torch.randn(L, n, h, generator=g).to(dtype)
@@ -178,7 +188,7 @@ def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256) -> list
     for label, n in rows_of.items():
         row = {"rows": n, "particles": label}
         for name in ("fp32", "bf16"):
-            for part in ("gemm", "silu", "silukernel", "fused"):
+            for part in ("gemm", "silu", "silukernel", "fused", "network"):
                 if (label, name, part) in times:
                     row[f"{name}_{part}_us"] = 1e6 * statistics.median(times[(label, name, part)])
         out.append(row)
@@ -201,6 +211,12 @@ def print_layer_costs(rows: list[dict]) -> None:
         g32, s32, g16, s16 = r["fp32_gemm_us"], silu("fp32"), r["bf16_gemm_us"], silu("bf16")
         print(f"| {r['particles']} | {r['rows']} | {cols('fp32')} | {cols('bf16')} | {100 * s16 / (g16 + s16):.0f}% "
               f"| {g32 / g16:.2f}x | {(g32 + s32) / (g16 + s16):.2f}x |")
+    print("\n| the whole network, (58, 12) | rows | fp32 [us] | bf16 [us] | bf16/fp32 (a plan made only of its "
+          "network calls) |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['particles']} | {r['rows']} | {r['fp32_network_us']:.0f} | {r['bf16_network_us']:.0f} "
+              f"| {r['fp32_network_us'] / r['bf16_network_us']:.2f}x |")
 
 
 def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10) -> list[dict]:
