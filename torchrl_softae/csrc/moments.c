@@ -11,7 +11,8 @@
  * copy, the member means, mean, centring, square, sum, the member gather), each a kernel launch;
  * at the 2060 rows of a 10-particle plan the (L, N, d_s) tensors leave the L2 cache. Here each
  * row is read once, where it lies in the network's output buffer (any member and row stride), and
- * only the (N, d_s) results are written. benchmarks/planning_speed.py --loop-overhead measures it.
+ * only the (N, d_s) results are written. benchmarks/planning_speed.py --compare-moments (whole
+ * plans) and --loop-overhead (one candidate evaluation) measure it against the torch ops.
  *
  * The arithmetic is the torch ops' in the same order (members summed in order, then scaled by
  * 1/L; squared deviations likewise), with separate multiplies and adds, so results agree with
