@@ -289,8 +289,7 @@ def test_fused_moments_match_the_torch_ops(monkeypatch):
         model.fused_moments, model.inference_path, model.planning_dtype = True, "auto", None
     raw = torch.randn(5, 8, 6)
     with pytest.raises(ValueError, match=r"member_index outside \[0, 5\)"):
-        kernel(raw, torch.zeros(8, 3), torch.zeros(3), torch.ones(3), 3,
-                                        torch.full((8,), 5), with_logvar=True)
+        kernel(raw, torch.zeros(8, 3), torch.zeros(3), torch.ones(3), 3, torch.full((8,), 5), with_logvar=True)
 
 
 @pytest.mark.parametrize("activation", [torch.nn.SiLU, torch.nn.ReLU, torch.nn.Tanh, torch.nn.ELU])

@@ -44,11 +44,13 @@ typedef struct {
     float *picked, *picked_logvar; /* (N, d) outputs with member (picked_logvar only with the head) */
 } moments_args;
 
+/* members kept in registers (one __m512 each); the Python side reads it as MAX_MEMBERS */
+#define MAX_VECTOR_MEMBERS 16
+
 #ifdef SOFTAE_X86
 /* ------------------------------------------------------------------ AVX-512
  * Sixteen state dimensions per vector (the last one masked), every member's mean kept in a
  * register between the sum and the squared deviations: each output element is read once. */
-#define MAX_VECTOR_MEMBERS 16
 
 __attribute__((target("avx512f,avx512bw,avx512vl"))) static inline __m512 load_avx512(const moments_args *a, int64_t offset,
                                                                              __mmask16 m) {
@@ -86,14 +88,16 @@ __attribute__((target("avx512f,avx512bw,avx512vl"))) static void moments_row_avx
     }
 }
 
-static int cpu_supported(void) {
+static int cpu_check(void) {
     __builtin_cpu_init();
     /* libgcc's feature bits include the OS check (XCR0) that the AVX-512 state is enabled */
     return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512vl");
 }
 #else
-static int cpu_supported(void) { return 0; }
+static int cpu_check(void) { return 0; }
 #endif
+
+static int CPU_SUPPORTED = 0; /* checked once, at import */
 
 /* below this many elements one thread does it all (waking the other costs more) */
 #define MIN_PARALLEL_ELEMENTS ((int64_t)32768)
@@ -110,7 +114,7 @@ static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
         PyErr_Format(PyExc_ValueError, "ensemble_moments: dtype code %d, expected 0 (float32) or 1 (bfloat16)", dtype);
         return NULL;
     }
-    if (!cpu_supported()) {
+    if (!CPU_SUPPORTED) {
         PyErr_SetString(PyExc_RuntimeError, "ensemble_moments: this CPU lacks AVX-512 (F, BW, VL)");
         return NULL;
     }
@@ -141,7 +145,7 @@ static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
 static PyObject *supported(PyObject *self, PyObject *unused) {
     (void)self;
     (void)unused;
-    return PyBool_FromLong(cpu_supported());
+    return PyBool_FromLong(CPU_SUPPORTED);
 }
 
 static PyMethodDef METHODS[] = {
@@ -156,4 +160,9 @@ static PyMethodDef METHODS[] = {
 static struct PyModuleDef MODULE = {PyModuleDef_HEAD_INIT, "_moments", "ensemble mean and epistemic std in one pass",
                                     -1, METHODS, NULL, NULL, NULL, NULL};
 
-PyMODINIT_FUNC PyInit__moments(void) { return PyModule_Create(&MODULE); }
+PyMODINIT_FUNC PyInit__moments(void) {
+    CPU_SUPPORTED = cpu_check();
+    PyObject *module = PyModule_Create(&MODULE);
+    if (module != NULL && PyModule_AddIntConstant(module, "MAX_MEMBERS", MAX_VECTOR_MEMBERS) < 0) Py_CLEAR(module);
+    return module;
+}

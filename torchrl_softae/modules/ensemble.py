@@ -657,15 +657,19 @@ class EnsembleWorldModel(TensorDictModuleBase):
                 return members.reshape(shape), ale[0].reshape(*batch, d)
         elif member_index is not None:
             idx = member_index.reshape(1, -1, 1).expand(1, *logvar.shape[1:])
-            ale = out.scale * (0.5 * self._bound_logvar(logvar.gather(0, idx).squeeze(0))).exp()
+            ale = self._aleatoric_std(self._bound_logvar(logvar.gather(0, idx).squeeze(0)))
             if stretch is not None:
                 ale = ale * stretch.gather(0, idx).squeeze(0)
             return members.reshape(shape), ale.reshape(*batch, d)
         else:
-            ale = out.scale * (0.5 * logvar).exp()
+            ale = self._aleatoric_std(logvar)
             if stretch is not None:
                 ale = ale * stretch
         return members.reshape(shape), ale.reshape(shape)
+
+    def _aleatoric_std(self, logvar: torch.Tensor) -> torch.Tensor:
+        """The aleatoric std in the model's units from a bounded normalized log-variance."""
+        return self.output_normalizer.scale * (0.5 * logvar).exp()
 
     #: compute mu and sigma (and a sampled member's mean) in one pass over the network output with
     #: the compiled kernel (:mod:`.moments_kernel`) where it applies; ``False``: torch ops (to compare)
@@ -709,7 +713,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
                 raw, obs, out.loc, out.scale, d, member_index, with_logvar)
             ale = None
             if with_aleatoric:
-                ale = out.scale * (0.5 * self._bound_logvar(logvar)).exp() if with_logvar else torch.zeros_like(mu)
+                ale = self._aleatoric_std(self._bound_logvar(logvar)) if with_logvar else torch.zeros_like(mu)
         else:
             members, ale = self._members_from_output(raw, obs, (obs.shape[0],), with_aleatoric, member_index)
             mu = members.mean(0)

@@ -18,8 +18,8 @@ except ImportError:
 if _moments is not None and not _moments.supported():  # built, but this CPU lacks AVX-512
     _moments = None
 
-#: members the kernel keeps in registers (``MAX_VECTOR_MEMBERS`` in moments.c)
-MAX_MEMBERS = 16
+#: members the kernel keeps in registers (``MAX_VECTOR_MEMBERS`` in moments.c); 0 without the kernel
+MAX_MEMBERS = 0 if _moments is None else _moments.MAX_MEMBERS
 
 __all__ = ["MAX_MEMBERS", "available", "applies", "ensemble_moments"]
 
