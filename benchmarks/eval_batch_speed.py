@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from planning_speed import best_peaks, cpu_description, cpu_kind, flops_per_row, peaks  # noqa: E402
+from planning_speed import RecordNetworkCalls, best_peaks, cpu_description, cpu_kind, peaks  # noqa: E402
 
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS  # noqa: E402
 from torchrl_softae.pipeline.builders import build_world_model  # noqa: E402
@@ -50,28 +50,6 @@ def model_for(env_id: str, cfg):
     model = build_world_model(cfg.model, obs.shape[-1], act.shape[-1])
     model.fit_normalizers(obs, act, nxt)
     return model.eval()
-
-
-class CountNetworkFlops:
-    """Counts the ensemble FLOPs of every ``model.network_output`` call (every prediction goes
-    through it) inside the block (the instance's method is wrapped for the block's duration, then
-    the class's is back)."""
-
-    def __init__(self, model):
-        self.model, self.flops = model, 0
-
-    def __enter__(self):
-        model, network_output = self.model, self.model.network_output
-
-        def counted(x, with_logvar=True):
-            self.flops += x.shape[-2] * flops_per_row(model, with_logvar)  # rows x every member's matmuls
-            return network_output(x, with_logvar)
-
-        model.network_output = counted
-        return self
-
-    def __exit__(self, *exc):
-        del self.model.network_output
 
 
 def main():
@@ -105,12 +83,12 @@ def main():
         starts = {}
         for _ in range(repeats):  # interleaved: one evaluation of each mode per round
             for mode in times:
-                with CountNetworkFlops(model) as count:
+                with RecordNetworkCalls(model) as calls:
                     t = time.perf_counter()
                     res = zero_shot(cfg, model, task, episodes=args.episodes, seed=0, progress=False,
                                     batched=mode == "batched")
                     times[mode].append(time.perf_counter() - t)
-                flops[mode].append(count.flops)
+                flops[mode].append(calls.flops())
                 starts[mode] = res["initial_states"]
             pk = peaks(repeats=2, so_far=pk)  # between rounds, so a noisy moment cannot set the peak
         med = {m: statistics.median(v) for m, v in times.items()}

@@ -32,6 +32,14 @@ and both in one oneDNN call (grouped convolution with the SiLU as a post-op), fp
 interleaved. Where the activation costs about as much as
 the GEMM, no GEMM speed-up can make the layer much faster: "layer bf16/fp32" is the bound.
 
+``--network-alone`` also times, in the same interleaved rounds, each main contender's network
+calls and nothing else (``CEMPlanner`` and the four icem rows; the calls of one plan recorded, then
+replayed with the same row counts, heads, dtype and inference path): what the plan would take if
+everything but the network cost nothing. Its ratios are the bounds the README argues from: a plan
+cannot beat ``CEMPlanner`` by more than ``CEMPlanner``'s time over its own network calls, nor be
+faster in bf16 than its network calls are (the per-step work between them costs about the same in
+both dtypes).
+
 ``--loop-overhead`` times one SoftAE candidate evaluation (``evaluate_action_sequences``, one
 particle, the arm's shape) against the same with mu and sigma by torch ops, a hand-written loop of
 the same arithmetic (torch ops, checked equal) and its network calls alone: what the horizon loop
@@ -81,6 +89,8 @@ P, K, I, N = 200, 20, 5, 10
 #: omegaconf 2.4 and antlr4 4.13, and hydra's import failed)
 MBRL_INSTALL = "pip install --no-deps mbrl==0.2.0 && pip install hydra-core termcolor"
 KEPT = math.ceil(0.3 * K)  # iCEM adds xi * K kept elites to its P samples
+#: the contenders --network-alone replays (the targets' ratios are between these)
+ALONE = ("cem-torchrl", "icem-fp32-full", "icem-bf16-full", "icem-fp32-dedup", "icem-bf16-dedup")
 
 
 def cpu_description() -> dict:
@@ -303,6 +313,26 @@ def print_loop_overhead(rows: list[dict]) -> None:
               + f"{r['hand_ms']:.1f} | {r['network_ms']:.1f} | {100 * r['network_ms'] / r['ours_ms']:.0f}% |")
 
 
+def print_network_alone(rows: list[dict]) -> None:
+    """Each replayed contender's plan against its network calls alone, and the two bounds they give:
+    over ``CEMPlanner`` (its plan / our network calls) and bf16 over fp32 (fp32 calls / bf16 calls)."""
+    print("\n| shape | planner | plan [ms] | its network calls alone [ms] | network share | calls "
+          "| bound: vs CEMPlanner (CEMPlanner's plan / these calls) | bound: bf16/fp32 (fp32 calls / bf16 calls) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        if "network_alone_s" not in r:
+            continue
+        same = {q["planner"]: q for q in rows if q["shape"] == r["shape"]}
+        cem = same["cem-torchrl"]["median_s"]
+        vs_cem = f"{cem / r['network_alone_s']:.2f}x" if r["planner"] != "cem-torchrl" else ""
+        bf16 = ""
+        if r["planner"].startswith("icem-bf16"):
+            fp32 = same[r["planner"].replace("bf16", "fp32")]
+            bf16 = f"{fp32['network_alone_s'] / r['network_alone_s']:.2f}x"
+        print(f"| {r['shape']} | {r['planner']} | {1e3 * r['median_s']:.1f} | {1e3 * r['network_alone_s']:.1f} "
+              f"| {100 * r['network_alone_s'] / r['median_s']:.0f}% | {r['network_calls']} | {vs_cem} | {bf16} |")
+
+
 def flops_per_row(model, with_logvar: bool = True) -> int:
     """FLOPs of one ensemble row (every member's matmuls), as the inference path runs it: without
     the log-variance half of the output layer where propagation has no aleatoric noise."""
@@ -323,6 +353,53 @@ def flops_per_action(model, rows, H, iters, first_rows=None, with_logvar=True):
     action), ``iters`` iterations."""
     first_rows = rows if first_rows is None else first_rows
     return flops_per_row(model, with_logvar) * (first_rows + rows * (H - 1)) * iters
+
+
+class RecordNetworkCalls:
+    """Records the input shape and ``with_logvar`` of every ``model.network_output`` call inside the
+    block (every prediction goes through it; the instance's method is wrapped for the block's
+    duration, then the class's is back)."""
+
+    def __init__(self, model):
+        self.model, self.calls = model, []
+
+    def __enter__(self):
+        network_output = self.model.network_output
+
+        def recorded(x, with_logvar=True):
+            self.calls.append((tuple(x.shape), with_logvar))
+            return network_output(x, with_logvar)
+
+        self.model.network_output = recorded
+        return self
+
+    def __exit__(self, *exc):
+        del self.model.network_output
+
+    def flops(self) -> int:
+        """The ensemble FLOPs of the recorded calls (rows x every member's matmuls, the
+        log-variance head where it was computed)."""
+        return sum(shape[-2] * flops_per_row(self.model, with_logvar) for shape, with_logvar in self.calls)
+
+
+class NetworkCallsAlone:
+    """Replays recorded ``network_output`` calls and nothing else: the same row counts and heads, in
+    ``dtype`` (``None``: fp32), on fixed inputs, with whatever inference path the model is set to.
+    Its time is what the plan that made the calls would take if nothing but its network cost
+    anything."""
+
+    def __init__(self, model, calls: list, dtype: torch.dtype | None):
+        g = torch.Generator().manual_seed(0)
+        self.model, self.calls, self.dtype = model, calls, dtype
+        self.inputs = {shape: torch.randn(shape, generator=g) for shape, _ in calls}
+
+    def __call__(self, td=None):
+        prev, self.model.planning_dtype = self.model.planning_dtype, self.dtype
+        try:
+            for shape, with_logvar in self.calls:
+                self.model.network_output(self.inputs[shape], with_logvar)
+        finally:
+            self.model.planning_dtype = prev
 
 
 class MbrlIcem:
@@ -372,6 +449,8 @@ def main():
                    help="also time the icem rows with mu and sigma by torch ops instead of the one-pass kernel")
     p.add_argument("--layer-costs", action="store_true",
                    help="also time one hidden layer's GEMM, SiLU and fused GEMM + SiLU at the planner's row counts")
+    p.add_argument("--network-alone", action="store_true",
+                   help="also time each main contender's network calls alone, in the same rounds (the bounds)")
     p.add_argument("--loop-overhead", action="store_true",
                    help="also time one SoftAE candidate evaluation against a hand-written loop and the network alone")
     p.add_argument("--out", default=None,
@@ -436,12 +515,20 @@ def main():
             model.inference_path = path_of.get(key, "auto")
             model.fused_moments = key not in torch_moments
 
-        times = {k: [] for k in planners}
+        alone = {}  # contender -> its plan's network calls, replayed alone (--network-alone)
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            for key, (planner, *_) in planners.items():
+            for key, (planner, dtype, _) in planners.items():
                 configure(key)
                 planner(obs.clone())  # warm-up (allocations, weight caches, path measurement)
+                if args.network_alone and key in ALONE:
+                    if hasattr(planner, "reset"):
+                        planner.reset()
+                    with RecordNetworkCalls(model) as rec:
+                        planner(obs.clone())
+                    alone[key] = NetworkCallsAlone(model, rec.calls, torch.bfloat16 if dtype == "bf16" else None)
+                    alone[key]()
+            times = {k: [] for k in [*planners, *(f"{k}:network" for k in alone)]}
             for _ in range(repeats):  # interleaved: one action of each contender per round
                 for key, (planner, *_) in planners.items():
                     configure(key)
@@ -450,11 +537,15 @@ def main():
                     t = time.perf_counter()
                     planner(obs.clone())
                     times[key].append(time.perf_counter() - t)
+                    if key in alone:  # right after its plan, in the same state of the machine
+                        t = time.perf_counter()
+                        alone[key]()
+                        times[f"{key}:network"].append(time.perf_counter() - t)
                 pk = peaks(repeats=2, so_far=pk)  # between rounds, so a noisy moment cannot set the peak
         model.inference_path, model.fused_moments = "auto", True
         chosen = sorted({f"{'bf16' if k[0] == torch.bfloat16 else 'fp32'} rows<={k[1]}: {v}"
                          for k, v in model._path_memo.items() if isinstance(v, str)})
-        timed.append((name, d_s, d_a, H, model, sample_env, planners, times, chosen))
+        timed.append((name, d_s, d_a, H, model, sample_env, planners, times, chosen, alone))
 
     best_peak = best_peaks(pk)
     results["peaks_gflops"] = pk
@@ -463,7 +554,7 @@ def main():
     print("\n| shape | planner | median ms | best ms | vs CEMPlanner (median) | % of peak (its dtype) "
           "| at the peak: time, vs CEMPlanner |")
     print("|---|---|---|---|---|---|---|")
-    for name, d_s, d_a, H, model, sample_env, planners, times, chosen in timed:
+    for name, d_s, d_a, H, model, sample_env, planners, times, chosen, alone in timed:
         print(f"<!-- {name}: inference paths measured at first use: {'; '.join(chosen)} -->")
         base = statistics.median(times["cem-torchrl"])
         for key, (planner, dtype, rows) in planners.items():
@@ -484,6 +575,14 @@ def main():
                        rows=rows, first_step_rows=first_rows, gflop=flops / 1e9, with_logvar=with_logvar,
                        speedup_vs_cem_median=base / med, fraction_of_peak=frac, iterations=iters,
                        seconds_at_peak=at_peak, max_speedup_vs_cem=base / at_peak, times=times[key])
+            if key in alone:  # its network calls alone, timed right after it in every round
+                net = statistics.median(times[f"{key}:network"])
+                recorded = sum(shape[-2] * flops_per_row(model, wl) for shape, wl in alone[key].calls)
+                if abs(recorded - flops) > 0.01 * flops:  # the FLOP count above must be what the plan ran
+                    print(f"warning: {name} {key}: the plan's recorded network calls are {recorded / 1e9:.1f} "
+                          f"GFLOP, the formula says {flops / 1e9:.1f}")
+                row.update(network_alone_s=net, network_calls=len(alone[key].calls),
+                           recorded_gflop=recorded / 1e9, times_network_alone=times[f"{key}:network"])
             results["rows"].append(row)
             print(f"| {name} ({d_s},{d_a}) H={H} | {key} | {med * 1e3:.1f} | {best * 1e3:.1f} | {base / med:.2f}x | "
                   f"{100 * frac:.0f}% ({dtype}) | {at_peak * 1e3:.0f} ms, {base / at_peak:.2f}x |", flush=True)
@@ -498,6 +597,8 @@ def main():
               f"most {best_peak['bf16'] / best_peak['fp32']:.2f}x, the peaks' ratio)"
               + (f", full fp32 vs mbrl-lib {rr['mbrl-icem']['median_s'] / rr['icem-fp32-full']['median_s']:.2f}x"
                  if "mbrl-icem" in rr else ""))
+    if args.network_alone:
+        print_network_alone(results["rows"])
     if args.layer_costs:
         results["layer_costs"] = layer_costs(repeats)
         print_layer_costs(results["layer_costs"])

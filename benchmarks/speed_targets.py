@@ -2,12 +2,17 @@
 
     python benchmarks/speed_targets.py                    # this machine's kind (amx, avx512-bf16 or no-bf16)
     python benchmarks/speed_targets.py --kind amx         # another kind's records
+    python benchmarks/speed_targets.py --plot             # also draw them (results/plots/speed_targets-KIND.png)
 
 Reads ``benchmarks/results/planning_speed-KIND.json`` (``planning_speed.py --compare-paths``) and
 ``eval_batch_speed-KIND[-bf16].json`` (``eval_batch_speed.py [--precision bf16]``), and prints one
-row per target and place: the measured value, the bound the same run measured for it where the
-record has one (the computation's ensemble FLOPs at the GEMM peak of its dtype; for bf16 over
-fp32, the ratio of the two peaks) and whether the target is met. The targets are the performance
+row per target and place: the measured value, the two bounds the same run measured for it where
+the record has them, and whether the target is met. "At the GEMM peak": the computation's ensemble
+FLOPs at the GEMM peak of its dtype (for bf16 over fp32, the ratio of the two peaks), what any
+implementation of the same computation could at best reach on this CPU. "Network calls alone"
+(``planning_speed.py --network-alone``): the plan's own network calls, replayed alone in the same
+rounds, i.e. the value if everything but the network cost nothing (over ``CEMPlanner``: its plan
+over our calls; bf16 over fp32: the fp32 calls over the bf16 calls; ms: the calls' time). The targets are the performance
 issue's, in one place (:data:`TARGETS`); nothing is measured here, so the table is exactly what
 the records say. Ratios are of medians; "% of peak" is the record's (best round).
 """
@@ -50,7 +55,8 @@ def _load(name: str) -> dict | None:
 
 
 def measured_rows(kind: str) -> list[tuple]:
-    """``(target, where, measured, bound or None)`` for every target of ``kind`` its records cover."""
+    """``(target, where, measured, bound at the GEMM peak or None, bound of the network calls alone or
+    None)`` for every target of ``kind`` its records cover."""
     out = []
     planning = _load(f"planning_speed-{kind}.json")
     if planning is not None:
@@ -60,32 +66,97 @@ def measured_rows(kind: str) -> list[tuple]:
             rows = {r["planner"]: r for r in planning["rows"] if r["shape"] == shape}
             if not rows:
                 continue
+            cem = rows["cem-torchrl"]["median_s"]
             for particles, tag in (("10 particles", "full"), ("1 particle", "dedup")):
-                fp32 = rows[f"icem-fp32-{tag}"]
+                fp32, bf16 = rows[f"icem-fp32-{tag}"], rows[f"icem-bf16-{tag}"]
+                alone = "network_alone_s" in fp32 and "network_alone_s" in bf16
                 out.append((f"{particles} fp32 vs no-grad CEMPlanner", where, fp32["speedup_vs_cem_median"],
-                            fp32.get("max_speedup_vs_cem")))
+                            fp32.get("max_speedup_vs_cem"), cem / fp32["network_alone_s"] if alone else None))
                 best_fp32 = min(r["median_s"] for k, r in rows.items() if k.split("@")[0] == f"icem-fp32-{tag}")
-                bf16 = rows[f"icem-bf16-{tag}"]
-                out.append((f"{particles} bf16 vs best fp32", where, best_fp32 / bf16["median_s"], peak_ratio))
+                out.append((f"{particles} bf16 vs best fp32", where, best_fp32 / bf16["median_s"], peak_ratio,
+                            fp32["network_alone_s"] / bf16["network_alone_s"] if alone else None))
                 for prec, row in (("fp32", fp32), ("bf16", bf16)):
                     out.append((f"{particles} {prec}, % of the {prec} peak", where, 100 * row["fraction_of_peak"],
-                                None))
+                                None, None))
             bf16 = rows["icem-bf16-dedup"]
             out.append((f"SoftAE (1 particle bf16) ms per action, {robot}", where, 1e3 * bf16["median_s"],
-                        1e3 * bf16["seconds_at_peak"] if "seconds_at_peak" in bf16 else None))
+                        1e3 * bf16["seconds_at_peak"] if "seconds_at_peak" in bf16 else None,
+                        1e3 * bf16["network_alone_s"] if "network_alone_s" in bf16 else None))
     for suffix, prec in (("", "fp32"), ("-bf16", "bf16")):
         batched = _load(f"eval_batch_speed-{kind}{suffix}.json")
         if batched is None:
             continue
         for env_id, row in batched["envs"].items():
             out.append(("8 episodes as one batch vs one after another", f"{env_id}, {prec}", row["speedup_median"],
-                        row.get("max_speedup_at_peak")))
+                        row.get("max_speedup_at_peak"), None))
     return out
+
+
+def checked_rows(kind: str) -> list[tuple]:
+    """``(target, comparison, threshold, where, measured, at the peak, network alone, met)`` per
+    target of ``kind`` and place, in :data:`TARGETS`' order (measured ``None``: no record)."""
+    by_name = {}
+    for name, where, value, at_peak, alone in measured_rows(kind):
+        by_name.setdefault(name, []).append((where, value, at_peak, alone))
+    out = []
+    for name, applies, op, threshold in TARGETS:
+        if applies not in (None, kind):
+            continue
+        for where, value, at_peak, alone in by_name.get(name, [("(no record)", None, None, None)]):
+            met = None if value is None else (value >= threshold if op == ">=" else value <= threshold)
+            out.append((name, op, threshold, where, value, at_peak, alone, met))
+    return out
+
+
+def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
+    """Every target with a bound as one row on one axis: value over the target (target over value
+    for times), so 1 is the target and right of it is met; the measured median and the two bounds."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in rows if r[4] is not None and (r[5] is not None or r[6] is not None)]
+
+    def rel(op, threshold, v):
+        return None if v is None else (v / threshold if op == ">=" else threshold / v)
+
+    fig, ax = plt.subplots(figsize=(9, 0.42 * len(rows) + 1.6))
+    for y, (name, op, threshold, where, value, at_peak, alone, met) in enumerate(rows):
+        m, a, n = rel(op, threshold, value), rel(op, threshold, at_peak), rel(op, threshold, alone)
+        right = max(v for v in (m, a, n) if v is not None)
+        ax.plot([min(v for v in (m, a, n) if v is not None), right], [y, y], color="0.85", lw=6, zorder=1,
+                solid_capstyle="butt")
+        if a is not None:
+            ax.scatter(a, y, marker="|", s=250, color="0.45", zorder=2, label="at the GEMM peak" if y == 0 else None)
+        if n is not None:
+            ax.scatter(n, y, marker="D", s=40, facecolor="white", edgecolor="tab:blue", zorder=3,
+                       label="its network calls alone" if y == 0 else None)
+        ax.scatter(m, y, s=55, color="tab:green" if met else "tab:red", zorder=4)
+        ax.annotate(f"{value:.0f} ms" if "ms" in name else f"{value:.2f}x", (m, y), xytext=(0, 7),
+                    textcoords="offset points", ha="center", fontsize=7)
+    ax.scatter([], [], s=55, color="tab:green", label="measured (median), met")
+    ax.scatter([], [], s=55, color="tab:red", label="measured (median), not met")
+    ax.axvline(1.0, color="k", lw=1, ls="--")
+    ax.set_yticks(range(len(rows)))
+    ax.set_yticklabels([f"{name} {op} {threshold:g}\n{where}" for name, op, threshold, where, *_ in rows], fontsize=7)
+    ax.invert_yaxis()
+    ax.set_xscale("log")
+    ax.set_xlabel("measured / target (for ms: target / measured); 1 = the target, right of it = met (log scale)")
+    ax.set_title(f"Planning-speed targets on {cpu} ({kind}): measured, and the bounds measured in the same run",
+                 fontsize=9)
+    ax.grid(axis="x", which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--kind", choices=KINDS, default=None, help="default: this machine's kind")
+    p.add_argument("--plot", action="store_true", help="also draw the targets and their bounds on one axis")
     args = p.parse_args()
     kind = args.kind or cpu_kind(cpu_description())
     rows = measured_rows(kind)
@@ -94,22 +165,20 @@ def main():
                   f"eval_batch_speed.py on such a CPU first)\n")
     record = _load(f"planning_speed-{kind}.json") or _load(f"eval_batch_speed-{kind}.json")
     print(f"# speed targets on {kind} ({record['cpu']['cpu']}), from benchmarks/results/*-{kind}*.json\n")
-    print("| target | where | measured | at the GEMM peak | met |")
-    print("|---|---|---|---|---|")
-    by_name = {}
-    for name, where, value, bound in rows:
-        by_name.setdefault(name, []).append((where, value, bound))
-    for name, applies, op, threshold in TARGETS:
-        if applies not in (None, kind):
+    print("| target | where | measured | at the GEMM peak | its network calls alone | met |")
+    print("|---|---|---|---|---|---|")
+    checked = checked_rows(kind)
+    for name, op, threshold, where, value, at_peak, alone, met in checked:
+        if value is None:
+            print(f"| {name} {op} {threshold:g} | {where} | not measured | | | |")
             continue
-        for where, value, bound in by_name.get(name, [("(no record)", None, None)]):
-            if value is None:
-                print(f"| {name} {op} {threshold:g} | {where} | not measured | | |")
-                continue
-            met = value >= threshold if op == ">=" else value <= threshold
-            fmt = (lambda v: f"{v:.0f}") if "%" in name or "ms" in name else (lambda v: f"{v:.2f}x")
-            bound_txt = "" if bound is None else fmt(bound)
-            print(f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bound_txt} | {'yes' if met else 'no'} |")
+        fmt = (lambda v: f"{v:.0f}") if "%" in name or "ms" in name else (lambda v: f"{v:.2f}x")
+        bounds = " | ".join("" if b is None else fmt(b) for b in (at_peak, alone))
+        print(f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bounds} | {'yes' if met else 'no'} |")
+    if args.plot:
+        path = RESULTS / "plots" / f"speed_targets-{kind}.png"
+        plot(checked, kind, record["cpu"]["cpu"], path)
+        print(f"\nwrote {path}")
     if any("with_logvar" not in r for r in record.get("rows", [])):
         print("\n(this planning record predates 2026-12-03: its % of peak counts the log-variance head for every "
               "row, about 6 % too high for the 1-particle rows, and it has no bounds at the peak)")
