@@ -115,6 +115,7 @@ def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     rows = [r for r in rows if r[4] is not None and (r[5] is not None or r[6] is not None)]
 
@@ -133,8 +134,8 @@ def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
             ax.scatter(n, y, marker="D", s=40, facecolor="white", edgecolor="tab:blue", zorder=3,
                        label="its network calls alone" if y == 0 else None)
         ax.scatter(m, y, s=55, color="tab:green" if met else "tab:red", zorder=4)
-        ax.annotate(f"{value:.0f} ms" if "ms" in name else f"{value:.2f}x", (m, y), xytext=(0, 7),
-                    textcoords="offset points", ha="center", fontsize=7)
+        ax.annotate(f"{value:.0f} ms" if "ms" in name else f"{value:.2f}x", (m, y), xytext=(-6, 7),
+                    textcoords="offset points", ha="right", fontsize=7)
     ax.scatter([], [], s=55, color="tab:green", label="measured (median), met")
     ax.scatter([], [], s=55, color="tab:red", label="measured (median), not met")
     ax.axvline(1.0, color="k", lw=1, ls="--")
@@ -142,9 +143,16 @@ def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
     ax.set_yticklabels([f"{name} {op} {threshold:g}\n{where}" for name, op, threshold, where, *_ in rows], fontsize=7)
     ax.invert_yaxis()
     ax.set_xscale("log")
-    ax.set_xlabel("measured / target (for ms: target / measured); 1 = the target, right of it = met (log scale)")
-    ax.set_title(f"Planning-speed targets on {cpu} ({kind}): measured, and the bounds measured in the same run",
-                 fontsize=9)
+    lo, hi = ax.get_xlim()
+    lo, hi = lo / 1.12, hi * 1.03  # room for the value labels left of the leftmost points
+    ax.set_xlim(lo, hi)
+    ticks = [t for t in (0.25, 0.3, 0.4, 0.5, 0.6, 0.8, 1, 1.25, 1.5, 2, 2.5, 3, 4, 6, 8) if lo <= t <= hi]
+    ax.xaxis.set_major_locator(matplotlib.ticker.FixedLocator(ticks))
+    ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+    ax.set_xlabel("measured / target (for ms: target / measured), log scale: 1 = the target, right of it = met")
+    ax.set_title(f"Planning-speed targets on {cpu} ({kind}, benchmarks/results/*-{kind}*.json):\n"
+                 "measured medians, and the bounds measured in the same run", fontsize=9)
     ax.grid(axis="x", which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
