@@ -40,6 +40,10 @@ cannot beat ``CEMPlanner`` by more than ``CEMPlanner``'s time over its own netwo
 faster in bf16 than its network calls are (the per-step work between them costs about the same in
 both dtypes).
 
+``--profile`` runs ``torch.profiler`` over three plans of each of the four icem rows at the arm's
+shape and prints what their op time goes to: the network's layers, and the largest other ops in ms
+per plan.
+
 ``--loop-overhead`` times one SoftAE candidate evaluation (``evaluate_action_sequences``, one
 particle, the arm's shape) against the same with mu and sigma by torch ops, a hand-written loop of
 the same arithmetic (torch ops, checked equal) and its network calls alone: what the horizon loop
@@ -301,6 +305,49 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10) -> li
             for name in ("fp32", "bf16")]
 
 
+#: the ops that run the network's layers on the inference paths (the rest is the work between them)
+NETWORK_OPS = ("mkldnn::_convolution_pointwise", "aten::convolution", "aten::mkldnn_convolution",
+               "aten::bmm", "aten::baddbmm", "aten::addmm", "aten::silu_", "torchrl_softae::silu_")
+
+
+def profile_plans(plans: int = 3, top: int = 6, d_s: int = 58, d_a: int = 12, H: int = 10) -> list[dict]:
+    """``torch.profiler`` over ``plans`` plans of each of the four icem rows: the share of self CPU
+    time in the network's layers (:data:`NETWORK_OPS`) and the ``top`` largest other ops, ms per plan."""
+    from torch.profiler import profile
+
+    model = make_model(d_s, d_a)
+    sample_env = TransformedEnv(EnsembleModelEnv(model, mode="sample"), UncertaintyReward())
+    opt_env = softae_env(model)
+    obs = TensorDict({"observation": torch.randn(d_s)}, [])
+    icem = dict(planning_horizon=H, optim_steps=I, num_candidates=P, top_k=K, num_particles=N)
+    out = []
+    with torch.no_grad():
+        for key in ("icem-fp32-full", "icem-bf16-full", "icem-fp32-dedup", "icem-bf16-dedup"):
+            planner = ICEMPlanner(sample_env if "full" in key else opt_env,
+                                  precision="bf16" if "bf16" in key else "fp32", **icem)
+            planner(obs.clone())
+            planner(obs.clone())
+            with profile() as prof:
+                for _ in range(plans):
+                    planner(obs.clone())
+            ops = {e.key: e.self_cpu_time_total / 1e3 / plans for e in prof.key_averages()}  # ms per plan
+            total = sum(ops.values())
+            network = sum(v for k, v in ops.items() if k in NETWORK_OPS)
+            rest = sorted(((v, k) for k, v in ops.items() if k not in NETWORK_OPS), reverse=True)[:top]
+            out.append({"planner": key, "op_ms_per_plan": total, "network_ms_per_plan": network,
+                        "top_other_ops_ms_per_plan": {k: v for v, k in rest}})
+    return out
+
+
+def print_profile(rows: list[dict]) -> None:
+    print("\n| torch.profiler, (58, 12) H=10, ms per plan | op time | network layers | largest other ops |")
+    print("|---|---|---|---|")
+    for r in rows:
+        others = ", ".join(f"{k.split('::')[-1]} {v:.1f}" for k, v in r["top_other_ops_ms_per_plan"].items())
+        print(f"| {r['planner']} | {r['op_ms_per_plan']:.0f} | {r['network_ms_per_plan']:.0f} "
+              f"({100 * r['network_ms_per_plan'] / r['op_ms_per_plan']:.0f} %) | {others} |")
+
+
 def print_loop_overhead(rows: list[dict]) -> None:
     torch_moments = "ours_torch_moments_ms" in rows[0]
     print(f"\n| one SoftAE candidate evaluation (58, 12), {rows[0]['rows']} rows, H={rows[0]['H']} | ours [ms] "
@@ -451,6 +498,8 @@ def main():
                    help="also time one hidden layer's GEMM, SiLU and fused GEMM + SiLU at the planner's row counts")
     p.add_argument("--network-alone", action="store_true",
                    help="also time each main contender's network calls alone, in the same rounds (the bounds)")
+    p.add_argument("--profile", action="store_true",
+                   help="also profile three plans of each icem row at the arm's shape (where op time goes)")
     p.add_argument("--loop-overhead", action="store_true",
                    help="also time one SoftAE candidate evaluation against a hand-written loop and the network alone")
     p.add_argument("--out", default=None,
@@ -602,6 +651,9 @@ def main():
     if args.layer_costs:
         results["layer_costs"] = layer_costs(repeats)
         print_layer_costs(results["layer_costs"])
+    if args.profile:
+        results["profile"] = profile_plans()
+        print_profile(results["profile"])
     if args.loop_overhead:
         results["loop_overhead"] = loop_overhead(repeats * 3)
         print_loop_overhead(results["loop_overhead"])

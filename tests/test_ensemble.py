@@ -292,6 +292,28 @@ def test_fused_moments_match_the_torch_ops(monkeypatch):
         kernel(raw, torch.zeros(8, 3), torch.zeros(3), torch.ones(3), 3, torch.full((8,), 5), with_logvar=True)
 
 
+@pytest.mark.skipif(not (silu_kernel.available() and moments_kernel.available()),
+                    reason="the compiled kernels were not built here (no compiler or no AVX-512)")
+def test_compiled_kernels_show_in_torch_profiler_tables():
+    """The C kernels run outside torch's dispatcher; while a profiler records they appear under
+    their own names (so a profile's shares are of the whole op time), and outside one the result
+    is the same."""
+    from torch.profiler import profile
+
+    torch.manual_seed(0)
+    model = EnsembleWorldModel(7, 3, num_cells=32, depth=2).eval()
+    model.inference_path = "conv-silu-kernel"
+    obs, act = torch.randn(50, 7), torch.rand(50, 3) * 2 - 1
+    with torch.no_grad():
+        plain = model.predict_moments(obs, act)
+        with profile() as prof:
+            profiled = model.predict_moments(obs, act)
+    names = {e.key for e in prof.key_averages()}
+    assert {"torchrl_softae::silu_", "torchrl_softae::ensemble_moments"} <= names
+    for a, b in zip(plain, profiled):
+        assert (a is None and b is None) or torch.equal(a, b)
+
+
 @pytest.mark.parametrize("activation", [torch.nn.SiLU, torch.nn.ReLU, torch.nn.Tanh, torch.nn.ELU])
 def test_fused_activation_path_computes_what_the_training_path_computes(activation):
     """The oneDNN post-op fusion (SiLU as "swish", ...) is the same network as autograd's layers,

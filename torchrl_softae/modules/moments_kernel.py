@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import torch
 
+from torchrl_softae.modules._profiling import seen_by_profiler
+
 try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
     from torchrl_softae.modules import _moments
 except ImportError:
@@ -76,9 +78,10 @@ def ensemble_moments(
         member_address = member_index.data_ptr()
         picked = torch.empty(n, d)
         picked_logvar = torch.empty(n, d) if with_logvar else None
-    _moments.ensemble_moments(
-        output.data_ptr(), output.stride(0), output.stride(1), _DTYPE_CODES[output.dtype], L, n, d,
-        d if with_logvar else -1, state.data_ptr(), loc.data_ptr(), scale.data_ptr(), member_address,
-        mu.data_ptr(), sigma.data_ptr(), 0 if picked is None else picked.data_ptr(),
-        0 if picked_logvar is None else picked_logvar.data_ptr(), torch.get_num_threads())
+    with seen_by_profiler("torchrl_softae::ensemble_moments"):
+        _moments.ensemble_moments(
+            output.data_ptr(), output.stride(0), output.stride(1), _DTYPE_CODES[output.dtype], L, n, d,
+            d if with_logvar else -1, state.data_ptr(), loc.data_ptr(), scale.data_ptr(), member_address,
+            mu.data_ptr(), sigma.data_ptr(), 0 if picked is None else picked.data_ptr(),
+            0 if picked_logvar is None else picked_logvar.data_ptr(), torch.get_num_threads())
     return mu, sigma, picked, picked_logvar

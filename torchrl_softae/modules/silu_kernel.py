@@ -10,6 +10,8 @@ from __future__ import annotations
 import torch
 from torch.nn import functional as F
 
+from torchrl_softae.modules._profiling import seen_by_profiler
+
 try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
     from torchrl_softae.modules import _silu
 except ImportError:
@@ -59,5 +61,6 @@ def silu_(x: torch.Tensor) -> torch.Tensor:
     code = _DTYPE_CODES.get(x.dtype)
     if _silu is None or code is None or x.device.type != "cpu" or x.requires_grad or not _dense(x):
         return F.silu(x, inplace=True)
-    _silu.silu_(x.data_ptr(), x.numel(), code, torch.get_num_threads())
+    with seen_by_profiler("torchrl_softae::silu_"):
+        _silu.silu_(x.data_ptr(), x.numel(), code, torch.get_num_threads())
     return x
