@@ -35,7 +35,9 @@ the GEMM, no GEMM speed-up can make the layer much faster: "layer bf16/fp32" is 
 ``--network-alone`` also times, in the same interleaved rounds, each main contender's network
 calls and nothing else (``CEMPlanner`` and the four icem rows; the calls of one plan recorded, then
 replayed with the same row counts, heads, dtype and inference path): what the plan would take if
-everything but the network cost nothing. Its ratios are the bounds the README argues from: a plan
+everything but the network cost nothing. For our planners it also times the plan's scoring (its
+``evaluate`` calls), which splits the rest of the plan into the planner's own work (sampling,
+ranking, refitting) and the per-step work between the network calls. Its ratios are the bounds the README argues from: a plan
 cannot beat ``CEMPlanner`` by more than ``CEMPlanner``'s time over its own network calls, nor be
 faster in bf16 than its network calls are (the per-step work between them costs about the same in
 both dtypes).
@@ -62,6 +64,7 @@ benchmarks/results/planning_speed-KIND.json (KIND: amx, avx512-bf16 or no-bf16).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import platform
@@ -364,8 +367,10 @@ def print_network_alone(rows: list[dict]) -> None:
     """Each replayed contender's plan against its network calls alone, and the two bounds they give:
     over ``CEMPlanner`` (its plan / our network calls) and bf16 over fp32 (fp32 calls / bf16 calls)."""
     print("\n| shape | planner | plan [ms] | its network calls alone [ms] | network share | calls "
+          "| in scoring (evaluate) [ms] | the planner's own work (plan - scoring) [ms] "
+          "| between the network calls (scoring - network alone) [ms] "
           "| bound: vs CEMPlanner (CEMPlanner's plan / these calls) | bound: bf16/fp32 (fp32 calls / bf16 calls) |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "network_alone_s" not in r:
             continue
@@ -376,8 +381,12 @@ def print_network_alone(rows: list[dict]) -> None:
         if r["planner"].startswith("icem-bf16"):
             fp32 = same[r["planner"].replace("bf16", "fp32")]
             bf16 = f"{fp32['network_alone_s'] / r['network_alone_s']:.2f}x"
+        split = " | | "
+        if "scoring_s" in r:
+            split = (f"{1e3 * r['scoring_s']:.1f} | {1e3 * (r['median_s'] - r['scoring_s']):.1f} "
+                     f"| {1e3 * (r['scoring_s'] - r['network_alone_s']):.1f}")
         print(f"| {r['shape']} | {r['planner']} | {1e3 * r['median_s']:.1f} | {1e3 * r['network_alone_s']:.1f} "
-              f"| {100 * r['network_alone_s'] / r['median_s']:.0f}% | {r['network_calls']} | {vs_cem} | {bf16} |")
+              f"| {100 * r['network_alone_s'] / r['median_s']:.0f}% | {r['network_calls']} | {split} | {vs_cem} | {bf16} |")
 
 
 def flops_per_row(model, with_logvar: bool = True) -> int:
@@ -427,6 +436,31 @@ class RecordNetworkCalls:
         """The ensemble FLOPs of the recorded calls (rows x every member's matmuls, the
         log-variance head where it was computed)."""
         return sum(shape[-2] * flops_per_row(self.model, with_logvar) for shape, with_logvar in self.calls)
+
+
+class TimeScoring:
+    """Seconds one of our planners spends scoring candidates (its ``evaluate``: the model env's
+    ``evaluate_action_sequences``) inside the block; the rest of its plan is the planner's own work
+    (sampling, clipping, ranking, refitting)."""
+
+    def __init__(self, planner):
+        self.planner, self.seconds = planner, 0.0
+
+    def __enter__(self):
+        evaluate = self.planner.evaluate
+
+        def timed(*args, **kwargs):
+            t = time.perf_counter()
+            try:
+                return evaluate(*args, **kwargs)
+            finally:
+                self.seconds += time.perf_counter() - t
+
+        self.planner.evaluate = timed
+        return self
+
+    def __exit__(self, *exc):
+        del self.planner.evaluate
 
 
 class NetworkCallsAlone:
@@ -577,15 +611,19 @@ def main():
                         planner(obs.clone())
                     alone[key] = NetworkCallsAlone(model, rec.calls, torch.bfloat16 if dtype == "bf16" else None)
                     alone[key]()
-            times = {k: [] for k in [*planners, *(f"{k}:network" for k in alone)]}
+            scored = [k for k in alone if isinstance(planners[k][0], ICEMPlanner)]
+            times = {k: [] for k in [*planners, *(f"{k}:network" for k in alone), *(f"{k}:scoring" for k in scored)]}
             for _ in range(repeats):  # interleaved: one action of each contender per round
                 for key, (planner, *_) in planners.items():
                     configure(key)
                     if hasattr(planner, "reset"):
                         planner.reset()
-                    t = time.perf_counter()
-                    planner(obs.clone())
-                    times[key].append(time.perf_counter() - t)
+                    with TimeScoring(planner) if key in scored else contextlib.nullcontext() as scoring:
+                        t = time.perf_counter()
+                        planner(obs.clone())
+                        times[key].append(time.perf_counter() - t)
+                    if scoring is not None:
+                        times[f"{key}:scoring"].append(scoring.seconds)
                     if key in alone:  # right after its plan, in the same state of the machine
                         t = time.perf_counter()
                         alone[key]()
@@ -632,6 +670,9 @@ def main():
                           f"GFLOP, the formula says {flops / 1e9:.1f}")
                 row.update(network_alone_s=net, network_calls=len(alone[key].calls),
                            recorded_gflop=recorded / 1e9, times_network_alone=times[f"{key}:network"])
+                if f"{key}:scoring" in times:  # the plan's time in its evaluate calls
+                    row.update(scoring_s=statistics.median(times[f"{key}:scoring"]),
+                               times_scoring=times[f"{key}:scoring"])
             results["rows"].append(row)
             print(f"| {name} ({d_s},{d_a}) H={H} | {key} | {med * 1e3:.1f} | {best * 1e3:.1f} | {base / med:.2f}x | "
                   f"{100 * frac:.0f}% ({dtype}) | {at_peak * 1e3:.0f} ms, {base / at_peak:.2f}x |", flush=True)
