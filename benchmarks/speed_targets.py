@@ -88,7 +88,7 @@ def measured_rows(kind: str) -> list[tuple]:
             continue
         for env_id, row in batched["envs"].items():
             out.append(("8 episodes as one batch vs one after another", f"{env_id}, {prec}", row["speedup_median"],
-                        row.get("max_speedup_at_peak"), None))
+                        row.get("max_speedup_at_peak"), row.get("max_speedup_network_alone")))
     return out
 
 
