@@ -122,7 +122,7 @@ def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
     def rel(op, threshold, v):
         return None if v is None else (v / threshold if op == ">=" else threshold / v)
 
-    fig, ax = plt.subplots(figsize=(9, 0.42 * len(rows) + 1.6))
+    fig, ax = plt.subplots(figsize=(9, 0.42 * len(rows) + 2.0))
     for y, (name, op, threshold, where, value, at_peak, alone, met) in enumerate(rows):
         m, a, n = rel(op, threshold, value), rel(op, threshold, at_peak), rel(op, threshold, alone)
         right = max(v for v in (m, a, n) if v is not None)
@@ -154,7 +154,9 @@ def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
     ax.set_title(f"Planning-speed targets on {cpu} ({kind}, benchmarks/results/*-{kind}*.json):\n"
                  "measured medians, and the bounds measured in the same run", fontsize=9)
     ax.grid(axis="x", which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right")
+    # below the axes: inside, it would cover rows of a short figure
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.08 - 0.4 / (len(rows) + 3)), ncol=2,
+              frameon=False)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=130)
@@ -185,8 +187,12 @@ def main():
         print(f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bounds} | {'yes' if met else 'no'} |")
     if args.plot:
         path = RESULTS / "plots" / f"speed_targets-{kind}.png"
-        plot(checked, kind, record["cpu"]["cpu"], path)
-        print(f"\nwrote {path}")
+        if any(value is not None and (at_peak, alone) != (None, None) for *_, value, at_peak, alone, _ in checked):
+            plot(checked, kind, record["cpu"]["cpu"], path)
+            print(f"\nwrote {path}")
+        else:
+            print(f"\nnothing to draw: the {kind} records have no bounds (rerun planning_speed.py with "
+                  f"--network-alone and eval_batch_speed.py on such a CPU)")
     if any("with_logvar" not in r for r in record.get("rows", [])):
         print("\n(this planning record predates 2026-12-03: its % of peak counts the log-variance head for every "
               "row, about 6 % too high for the 1-particle rows, and it has no bounds at the peak)")
