@@ -39,7 +39,6 @@ from planning_speed import (  # noqa: E402
     NetworkCallsAlone, RecordNetworkCalls, best_peaks, cpu_description, cpu_kind, peaks)
 
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS  # noqa: E402
-from torchrl_softae.modules.precision import resolve_planning_dtype  # noqa: E402
 from torchrl_softae.pipeline.builders import build_world_model  # noqa: E402
 from torchrl_softae.pipeline.catalog import get_env_entry  # noqa: E402
 from torchrl_softae.pipeline.config import apply_overrides, make_config  # noqa: E402
@@ -86,7 +85,6 @@ def main():
         times = {"batched": [], "sequential": []}
         flops = {"batched": [], "sequential": []}
         alone_times = []  # the batch's network calls replayed alone, right after it
-        dtype = model.auto_planning_dtype() if args.precision == "auto" else resolve_planning_dtype(args.precision)
         starts = {}
         for _ in range(repeats):  # interleaved: one evaluation of each mode per round
             for mode in times:
@@ -99,7 +97,7 @@ def main():
                 starts[mode] = res["initial_states"]
                 if mode == "batched":
                     with torch.no_grad():
-                        alone = NetworkCallsAlone(model, calls.calls, dtype)
+                        alone = NetworkCallsAlone(calls, args.precision)
                         t = time.perf_counter()
                         alone()
                         alone_times.append(time.perf_counter() - t)

@@ -82,7 +82,7 @@ from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, Uncertain
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
 from torchrl_softae.modules.ensemble import ensemble_std
 from torchrl_softae.modules import moments_kernel, silu_kernel
-from torchrl_softae.modules.precision import cpu_flags
+from torchrl_softae.modules.precision import cpu_flags, resolve_planning_dtype
 
 SHAPES = [  # (name, d_s, d_a, H)
     ("arm58", 58, 12, 10),
@@ -96,8 +96,10 @@ P, K, I, N = 200, 20, 5, 10
 #: omegaconf 2.4 and antlr4 4.13, and hydra's import failed)
 MBRL_INSTALL = "pip install --no-deps mbrl==0.2.0 && pip install hydra-core termcolor"
 KEPT = math.ceil(0.3 * K)  # iCEM adds xi * K kept elites to its P samples
+#: our four main contenders: PETS-AE with all particles ("full") or SoftAE with one ("dedup"), fp32 or bf16
+ICEM_ROWS = ("icem-fp32-full", "icem-bf16-full", "icem-fp32-dedup", "icem-bf16-dedup")
 #: the contenders --network-alone replays (the targets' ratios are between these)
-ALONE = ("cem-torchrl", "icem-fp32-full", "icem-bf16-full", "icem-fp32-dedup", "icem-bf16-dedup")
+ALONE = ("cem-torchrl", *ICEM_ROWS)
 
 
 def cpu_description() -> dict:
@@ -313,6 +315,13 @@ NETWORK_OPS = ("mkldnn::_convolution_pointwise", "aten::convolution", "aten::mkl
                "aten::bmm", "aten::baddbmm", "aten::addmm", "aten::silu_", "torchrl_softae::silu_")
 
 
+def icem_contender(key: str, sample_env, opt_env, icem: dict) -> tuple:
+    """``(planner, precision, None)`` for ``key``, one of :data:`ICEM_ROWS` or a variant of one
+    (``...@PATH``): the sample env for "full" rows, SoftAE's for "dedup" ones, bf16 where the key says so."""
+    precision = "bf16" if "bf16" in key else "fp32"
+    return ICEMPlanner(sample_env if "full" in key else opt_env, precision=precision, **icem), precision, None
+
+
 def profile_plans(plans: int = 3, top: int = 6, d_s: int = 58, d_a: int = 12, H: int = 10) -> list[dict]:
     """``torch.profiler`` over ``plans`` plans of each of the four icem rows: the share of self CPU
     time in the network's layers (:data:`NETWORK_OPS`) and the ``top`` largest other ops, ms per plan."""
@@ -325,9 +334,8 @@ def profile_plans(plans: int = 3, top: int = 6, d_s: int = 58, d_a: int = 12, H:
     icem = dict(planning_horizon=H, optim_steps=I, num_candidates=P, top_k=K, num_particles=N)
     out = []
     with torch.no_grad():
-        for key in ("icem-fp32-full", "icem-bf16-full", "icem-fp32-dedup", "icem-bf16-dedup"):
-            planner = ICEMPlanner(sample_env if "full" in key else opt_env,
-                                  precision="bf16" if "bf16" in key else "fp32", **icem)
+        for key in ICEM_ROWS:
+            planner, *_ = icem_contender(key, sample_env, opt_env, icem)
             planner(obs.clone())
             planner(obs.clone())
             with profile() as prof:
@@ -464,17 +472,18 @@ class TimeScoring:
 
 
 class NetworkCallsAlone:
-    """Replays recorded ``network_output`` calls and nothing else: the same row counts and heads, in
-    ``dtype`` (``None``: fp32), on fixed inputs, with whatever inference path the model is set to.
-    Its time is what the plan that made the calls would take if nothing but its network cost
-    anything."""
+    """Replays the calls a :class:`RecordNetworkCalls` recorded, and nothing else: the same row counts
+    and heads, in ``precision`` (``"fp32"``, ``"bf16"``; ``"auto"`` as the model measures it), on
+    fixed inputs, with whatever inference path the model is set to. Its time is what the plan that
+    made the calls would take if nothing but its network cost anything."""
 
-    def __init__(self, model, calls: list, dtype: torch.dtype | None):
+    def __init__(self, recorded: RecordNetworkCalls, precision: str):
         g = torch.Generator().manual_seed(0)
-        self.model, self.calls, self.dtype = model, calls, dtype
-        self.inputs = {shape: torch.randn(shape, generator=g) for shape, _ in calls}
+        self.recorded, self.model, self.calls = recorded, recorded.model, recorded.calls
+        self.dtype = self.model.auto_planning_dtype() if precision == "auto" else resolve_planning_dtype(precision)
+        self.inputs = {shape: torch.randn(shape, generator=g) for shape, _ in self.calls}
 
-    def __call__(self, td=None):
+    def __call__(self):
         prev, self.model.planning_dtype = self.model.planning_dtype, self.dtype
         try:
             for shape, with_logvar in self.calls:
@@ -571,27 +580,18 @@ def main():
         planners = {"cem-torchrl": (CEMPlanner(sample_env, H, I, P * N, K), "fp32", P * N)}
         if have_mbrl:  # TS-inf in mbrl-lib runs each particle through its own member only: 1/L of the rows
             planners["mbrl-icem"] = (MbrlIcem(d_s, d_a, H), "fp32", P * N // model.ensemble_size)
-        planners.update({
-            "icem-fp32-full": (ICEMPlanner(sample_env, **icem), "fp32", None),
-            "icem-bf16-full": (ICEMPlanner(sample_env, precision="bf16", **icem), "bf16", None),
-            "icem-fp32-dedup": (ICEMPlanner(opt_env, **icem), "fp32", None),
-            "icem-bf16-dedup": (ICEMPlanner(opt_env, precision="bf16", **icem), "bf16", None),
-            "icem-deadline": (ICEMPlanner(opt_env, precision="bf16", time_budget=0.05, **icem), "bf16", None),
-        })
+        planners.update({key: icem_contender(key, sample_env, opt_env, icem) for key in ICEM_ROWS})
+        planners["icem-deadline"] = (ICEMPlanner(opt_env, precision="bf16", time_budget=0.05, **icem), "bf16", None)
         path_of = {}  # contender -> the inference path it runs with ("auto": measured at first use)
         if args.compare_paths:
-            for key in ("icem-fp32-full", "icem-bf16-full", "icem-fp32-dedup", "icem-bf16-dedup"):
+            for key in ICEM_ROWS:
                 for path in model.available_inference_paths():
-                    env = sample_env if "full" in key else opt_env
-                    prec = "bf16" if "bf16" in key else "fp32"
-                    planners[f"{key}@{path}"] = (ICEMPlanner(env, precision=prec, **icem), prec, None)
+                    planners[f"{key}@{path}"] = icem_contender(key, sample_env, opt_env, icem)
                     path_of[f"{key}@{path}"] = path
         torch_moments = set()  # contenders whose mu and sigma are torch ops (the kernel's baseline)
         if args.compare_moments and moments_kernel.available():
-            for key in ("icem-fp32-full", "icem-bf16-full", "icem-fp32-dedup", "icem-bf16-dedup"):
-                env = sample_env if "full" in key else opt_env
-                prec = "bf16" if "bf16" in key else "fp32"
-                planners[f"{key}@torch-moments"] = (ICEMPlanner(env, precision=prec, **icem), prec, None)
+            for key in ICEM_ROWS:
+                planners[f"{key}@torch-moments"] = icem_contender(key, sample_env, opt_env, icem)
                 torch_moments.add(f"{key}@torch-moments")
 
         def configure(key):  # the model as this contender runs it
@@ -609,7 +609,7 @@ def main():
                         planner.reset()
                     with RecordNetworkCalls(model) as rec:
                         planner(obs.clone())
-                    alone[key] = NetworkCallsAlone(model, rec.calls, torch.bfloat16 if dtype == "bf16" else None)
+                    alone[key] = NetworkCallsAlone(rec, dtype)
                     alone[key]()
             scored = [k for k in alone if isinstance(planners[k][0], ICEMPlanner)]
             times = {k: [] for k in [*planners, *(f"{k}:network" for k in alone), *(f"{k}:scoring" for k in scored)]}
@@ -664,7 +664,7 @@ def main():
                        seconds_at_peak=at_peak, max_speedup_vs_cem=base / at_peak, times=times[key])
             if key in alone:  # its network calls alone, timed right after it in every round
                 net = statistics.median(times[f"{key}:network"])
-                recorded = sum(shape[-2] * flops_per_row(model, wl) for shape, wl in alone[key].calls)
+                recorded = alone[key].recorded.flops()
                 if abs(recorded - flops) > 0.01 * flops:  # the FLOP count above must be what the plan ran
                     print(f"warning: {name} {key}: the plan's recorded network calls are {recorded / 1e9:.1f} "
                           f"GFLOP, the formula says {flops / 1e9:.1f}")

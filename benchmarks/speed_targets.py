@@ -109,15 +109,14 @@ def checked_rows(kind: str) -> list[tuple]:
 
 
 def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
-    """Every target with a bound as one row on one axis: value over the target (target over value
-    for times), so 1 is the target and right of it is met; the measured median and the two bounds."""
+    """``rows`` (of :func:`checked_rows`, measured and with a bound) on one axis: value over the
+    target (target over value for times), so 1 is the target and right of it is met; the measured
+    median and the two bounds."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import matplotlib.ticker
-
-    rows = [r for r in rows if r[4] is not None and (r[5] is not None or r[6] is not None)]
 
     def rel(op, threshold, v):
         return None if v is None else (v / threshold if op == ">=" else threshold / v)
@@ -169,15 +168,14 @@ def main():
     p.add_argument("--plot", action="store_true", help="also draw the targets and their bounds on one axis")
     args = p.parse_args()
     kind = args.kind or cpu_kind(cpu_description())
-    rows = measured_rows(kind)
-    if not rows:
+    checked = checked_rows(kind)
+    if all(row[4] is None for row in checked):
         p.exit(2, f"speed_targets: no records for kind {kind!r} in {RESULTS} (run planning_speed.py and "
                   f"eval_batch_speed.py on such a CPU first)\n")
     record = _load(f"planning_speed-{kind}.json") or _load(f"eval_batch_speed-{kind}.json")
     print(f"# speed targets on {kind} ({record['cpu']['cpu']}), from benchmarks/results/*-{kind}*.json\n")
     print("| target | where | measured | at the GEMM peak | its network calls alone | met |")
     print("|---|---|---|---|---|---|")
-    checked = checked_rows(kind)
     for name, op, threshold, where, value, at_peak, alone, met in checked:
         if value is None:
             print(f"| {name} {op} {threshold:g} | {where} | not measured | | | |")
@@ -187,8 +185,9 @@ def main():
         print(f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bounds} | {'yes' if met else 'no'} |")
     if args.plot:
         path = RESULTS / "plots" / f"speed_targets-{kind}.png"
-        if any(value is not None and (at_peak, alone) != (None, None) for *_, value, at_peak, alone, _ in checked):
-            plot(checked, kind, record["cpu"]["cpu"], path)
+        drawable = [r for r in checked if r[4] is not None and (r[5], r[6]) != (None, None)]
+        if drawable:
+            plot(drawable, kind, record["cpu"]["cpu"], path)
             print(f"\nwrote {path}")
         else:
             print(f"\nnothing to draw: the {kind} records have no bounds (rerun planning_speed.py with "
