@@ -36,7 +36,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from planning_speed import (  # noqa: E402
-    NetworkCallsAlone, RecordNetworkCalls, best_peaks, cpu_description, cpu_kind, peaks)
+    NetworkCallsAlone, RecordNetworkCalls, allocator_option, best_peaks, cpu_description, cpu_kind, peaks,
+    use_allocator)
 
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS  # noqa: E402
 from torchrl_softae.pipeline.builders import build_world_model  # noqa: E402
@@ -66,7 +67,9 @@ def main():
     p.add_argument("--precision", choices=PLANNING_PRECISIONS, default="fp32",
                    help="the planner's hidden-layer precision (default fp32, the record's first column)")
     p.add_argument("--out", default=None, help="default benchmarks/results/eval_batch_speed-KIND[-bf16].json")
+    allocator_option(p)
     args = p.parse_args()
+    allocator = use_allocator(args.allocator)
     repeats = max(args.repeats, 3)
     torch.set_num_threads(args.threads)
     cpu = cpu_description()
@@ -74,9 +77,10 @@ def main():
     out = (Path(args.out) if args.out
            else Path(__file__).parent / "results" / f"eval_batch_speed-{cpu_kind(cpu)}{suffix}.json")
     print(f"# eval_batch_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
-          f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; planner precision {args.precision}", flush=True)
+          f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; planner precision {args.precision}; allocator: {allocator}", flush=True)
     pk = peaks()
-    results = {"cpu": cpu, "threads": args.threads, "repeats": repeats, "precision": args.precision, "envs": {}}
+    results = {"cpu": cpu, "threads": args.threads, "repeats": repeats, "precision": args.precision,
+               "allocator": allocator, "envs": {}}
     for env_id in args.envs:
         cfg = apply_overrides(make_config(env_id, "softae", wandb="disabled"), [f"planner.precision={args.precision}"])
         model = model_for(env_id, cfg)

@@ -78,6 +78,7 @@ from tensordict import TensorDict
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.modules import CEMPlanner
 
+from torchrl_softae import keep_freed_memory
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
 from torchrl_softae.modules.ensemble import ensemble_std
@@ -100,6 +101,23 @@ KEPT = math.ceil(0.3 * K)  # iCEM adds xi * K kept elites to its P samples
 ICEM_ROWS = ("icem-fp32-full", "icem-bf16-full", "icem-fp32-dedup", "icem-bf16-dedup")
 #: the contenders --network-alone replays (the targets' ratios are between these)
 ALONE = ("cem-torchrl", *ICEM_ROWS)
+
+
+#: ``--allocator`` choices: "kept" is how the softae commands run (torchrl_softae.allocator)
+ALLOCATORS = ("kept", "default")
+
+
+def allocator_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--allocator", choices=ALLOCATORS, default="kept",
+                   help="kept (default, as the softae commands run): keep_freed_memory() for every contender; "
+                        "default: glibc's malloc as it comes (benchmarks/allocator_speed.py compares the two)")
+
+
+def use_allocator(choice: str) -> str:
+    """Applies ``--allocator`` to this process (every contender in it); returns what the record says."""
+    if choice == "kept":
+        return "kept freed memory" if keep_freed_memory() else "default (keep_freed_memory does not apply here)"
+    return "default"
 
 
 def cpu_description() -> dict:
@@ -548,7 +566,9 @@ def main():
     p.add_argument("--out", default=None,
                    help="default benchmarks/results/planning_speed-KIND.json, KIND = amx, avx512-bf16 or no-bf16: "
                         "the project's machines differ in CPU, and each kind keeps its own record")
+    allocator_option(p)
     args = p.parse_args()
+    allocator = use_allocator(args.allocator)
     repeats = max(args.repeats, 5)
     torch.set_num_threads(args.threads)
     shapes = [s for s in SHAPES if not args.quick or s[0] in ("arm58", "sopra32-H5")]
@@ -556,7 +576,7 @@ def main():
     out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"planning_speed-{cpu_kind(cpu)}.json"
     pk = peaks()
     print(f"# planning_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
-          f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}")
+          f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; allocator: {allocator}")
     print(f"compiled SiLU kernel: {silu_kernel.isa() or 'not built (torch SiLU only)'}; one-pass moments kernel: "
           f"{'yes' if moments_kernel.available() else 'no (not built, or no AVX-512: torch ops)'}", flush=True)
     try:
@@ -567,7 +587,7 @@ def main():
         have_mbrl = False
         print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} ({MBRL_INSTALL})")
     results = {"cpu": cpu, "silu_kernel_isa": silu_kernel.isa(), "moments_kernel": moments_kernel.available(),
-               "threads": args.threads,
+               "threads": args.threads, "allocator": allocator,
                "repeats": repeats, "rows": []}
     timed = []  # per shape: what the table needs once every round (and every peak) is measured
     for name, d_s, d_a, H in shapes:

@@ -40,7 +40,8 @@ import torch
 from tensordict import TensorDict
 
 sys.path.insert(0, str(Path(__file__).parent))
-from planning_speed import I, K, P, cpu_description, cpu_kind, make_model, softae_env  # noqa: E402
+from planning_speed import (  # noqa: E402
+    I, K, P, allocator_option, cpu_description, cpu_kind, make_model, softae_env, use_allocator)
 
 from torchrl_softae.modules import ICEMPlanner  # noqa: E402
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS  # noqa: E402
@@ -65,7 +66,8 @@ def act(planner: ICEMPlanner, actions: int) -> float:
     return time.perf_counter() - t
 
 
-def worker(conn, seed: int, threads: int, precision: str) -> None:
+def worker(conn, seed: int, threads: int, precision: str, allocator: str) -> None:
+    use_allocator(allocator)  # each seed's process allocates as the stacked one does
     torch.set_num_threads(threads)
     planner = softae_planner(5, seed, precision)
     act(planner, 1)  # warm-up: allocations, weight caches, inference path chosen at first use
@@ -82,23 +84,25 @@ def main():
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--precision", choices=PLANNING_PRECISIONS, default="fp32")
     p.add_argument("--out", default=None, help="default benchmarks/results/seed_batch_speed-KIND[-bf16].json")
+    allocator_option(p)
     args = p.parse_args()
     if args.seeds < 2 or args.threads % args.seeds:
         p.error(f"--seeds {args.seeds} with --threads {args.threads}: expected at least 2 seeds that divide the threads")
     S, repeats = args.seeds, max(args.repeats, 5)
+    allocator = use_allocator(args.allocator)
     cpu = cpu_description()
     suffix = "" if args.precision == "fp32" else f"-{args.precision}"
     out = (Path(args.out) if args.out
            else Path(__file__).parent / "results" / f"seed_batch_speed-{cpu_kind(cpu)}{suffix}.json")
     print(f"# seed_batch_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; {S} SoftAE seeds, (58, 12), H={H}, "
-          f"{args.precision}", flush=True)
+          f"{args.precision}; allocator: {allocator}", flush=True)
 
     ctx = mp.get_context("spawn")
     pipes, procs = [], []
     for seed in range(S):
         here, there = ctx.Pipe()
-        proc = ctx.Process(target=worker, args=(there, seed, args.threads // S, args.precision), daemon=True)
+        proc = ctx.Process(target=worker, args=(there, seed, args.threads // S, args.precision, args.allocator), daemon=True)
         proc.start()
         pipes.append(here)
         procs.append(proc)
@@ -140,7 +144,7 @@ def main():
         print(f"| {m} | {rate[m]['median']:.2f} | {rate[m]['best']:.2f} "
               f"| {rate[m]['median'] / rate['processes']['median']:.2f}x |")
     result = {"cpu": cpu, "torch": torch.__version__, "threads": args.threads, "seeds": S, "precision": args.precision,
-              "actions_per_seed_per_round": args.actions, "repeats": repeats, "shape": [D_S, D_A], "horizon": H,
+              "allocator": allocator, "actions_per_seed_per_round": args.actions, "repeats": repeats, "shape": [D_S, D_A], "horizon": H,
               "seconds": seconds, "actions_per_second": rate}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))

@@ -9,10 +9,14 @@ Importing the package registers the gymnasium ids of ``torchrl_softae.envs.robot
 simulators load on first ``make``): ``SoftArm-v0`` (58D), ``SoftArm136-v0`` (136D),
 ``SoftFish-v0`` (15D), ``SoftFishTarget-v0`` (18D), ``MSKLeg-v0`` (10D), ``SoPrA-v0`` (32D, the
 simulated twin), ``Pendulum-hanging``.
+
+:func:`~torchrl_softae.allocator.keep_freed_memory` (process-wide, so opt-in; the ``softae``
+commands call it) spares planners the page faults of glibc handing large tensors back to the kernel.
 """
 __version__ = "0.1.0"
 
 from torchrl_softae import _moved
+from torchrl_softae.allocator import keep_freed_memory  # noqa: F401 (public)
 from torchrl_softae.envs.robots import register_gym_ids as _register_gym_ids
 
 _moved.install()

@@ -302,6 +302,9 @@ def plain_output() -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     plain_output()
+    from torchrl_softae.allocator import keep_freed_memory
+
+    keep_freed_memory()  # planners allocate large tensors at every model step: reuse, not page faults
     from torchrl_softae.envs.robots.rendering import RenderingUnavailable
     from torchrl_softae.pipeline.config import ConfigError
     from torchrl_softae.pipeline.runs import CheckpointError

@@ -254,11 +254,13 @@ def run_trial(trial: Trial, threads: int, on_episode=None) -> dict:
     its last result row."""
     import torch
 
+    from torchrl_softae.allocator import keep_freed_memory
     from torchrl_softae.pipeline.arguments import config_from_args, explore_parser
     from torchrl_softae.pipeline.evaluate import evaluate_run
     from torchrl_softae.pipeline.explore import explore
 
     torch.set_num_threads(threads)
+    keep_freed_memory()  # as the softae commands do (a Ray worker does not run them)
     cfg = config_from_args(explore_parser().parse_args(trial.argv))
     history = explore(cfg, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
     row = dict(history[-1])
