@@ -173,7 +173,11 @@ def main():
         p.exit(2, f"speed_targets: no records for kind {kind!r} in {RESULTS} (run planning_speed.py and "
                   f"eval_batch_speed.py on such a CPU first)\n")
     record = _load(f"planning_speed-{kind}.json") or _load(f"eval_batch_speed-{kind}.json")
-    print(f"# speed targets on {kind} ({record['cpu']['cpu']}), from benchmarks/results/*-{kind}*.json\n")
+    print(f"# speed targets on {kind} ({record['cpu']['cpu']}), from benchmarks/results/*-{kind}*.json")
+    # the allocator setting moves plan times (benchmarks/allocator_speed.py): say which each record ran with
+    names = [f"planning_speed-{kind}.json", f"eval_batch_speed-{kind}.json", f"eval_batch_speed-{kind}-bf16.json"]
+    print("allocator: " + "; ".join(f"{n} {r.get('allocator', 'default (recorded before the option)')}"
+                                     for n in names if (r := _load(n)) is not None) + "\n")
     print("| target | where | measured | at the GEMM peak | its network calls alone | met |")
     print("|---|---|---|---|---|---|")
     for name, op, threshold, where, value, at_peak, alone, met in checked:

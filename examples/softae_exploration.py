@@ -54,12 +54,13 @@ def main(cfg: Config) -> None:
     from torchrl.envs import Compose, GymEnv, StepCounter, TransformedEnv
     from torchrl.record.loggers.wandb import WandbLogger
 
-    import torchrl_softae  # noqa: F401  (registers the gymnasium ids)
+    import torchrl_softae  # registers the gymnasium ids
     from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
     from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
     from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 
     torch.manual_seed(cfg.seed)
+    torchrl_softae.keep_freed_memory()  # process-wide: the planner's large tensors reuse memory, no page faults
     # ------------------------------------------------------------------------- the real env
     env = TransformedEnv(GymEnv(cfg.env), StepCounter(max_steps=cfg.episode_length))
     env.set_seed(cfg.seed)

@@ -39,10 +39,12 @@ def main(cfg: Config) -> list[float]:
     import torch
     from torchrl.envs import GymEnv, TransformedEnv
 
-    import torchrl_softae  # noqa: F401  (registers the gymnasium ids)
+    import torchrl_softae  # registers the gymnasium ids
     from torchrl_softae.envs import EnsembleModelEnv
     from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
     from torchrl_softae.tasks import TaskReward, tasks_for
+
+    torchrl_softae.keep_freed_memory()  # process-wide: the planner's large tensors reuse memory, no page faults
 
     saved = torch.load(cfg.model, weights_only=False)
     model = EnsembleWorldModel(saved["observation_dim"], saved["action_dim"], **saved["model_kwargs"])
