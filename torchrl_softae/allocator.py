@@ -20,7 +20,9 @@ memory for the next allocation, as PyTorch's CPU launcher (``torch.backends.xeon
 with jemalloc's decay settings. It is process-wide, so the library never calls it on its own; the
 ``softae`` commands and the benchmarks do. The cost: freed memory stays with the process (a few
 times the largest tensor that is allocated again and again: peak memory 887 against 588 MiB for
-the 84 MiB network call, unchanged for plans).
+the 84 MiB network call, unchanged for plans). The first few allocations of a size still fault
+(2 to 10 of a 64 MiB tensor allocated again and again, measured in fresh processes): the small
+objects allocated between them pin them until glibc's heap settles.
 """
 from __future__ import annotations
 
