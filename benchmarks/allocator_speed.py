@@ -31,6 +31,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 from planning_speed import ALLOCATORS, cpu_description, cpu_kind  # noqa: E402
+
 #: rows of one network call standing for 8 plans as one batch (8 x 2060: 10 particles)
 BATCH_ROWS = 8 * 2060
 
@@ -44,21 +45,19 @@ def child(group: str, setting: str, plans: int, threads: int, d_s: int, d_a: int
     """Times the contenders of ``group`` in this process under ``setting``; returns its measurements."""
     import torch
     from tensordict import TensorDict
-    from torchrl.envs import TransformedEnv
     from torchrl.modules import CEMPlanner
 
-    from planning_speed import ICEM_ROWS, I, K, N, P, icem_contender, make_model, softae_env, use_allocator
-    from torchrl_softae.envs import EnsembleModelEnv, UncertaintyReward
+    from planning_speed import (
+        ICEM_ROWS, I, K, N, P, icem_contender, icem_settings, make_model, pets_env, softae_env, use_allocator)
 
     allocator = use_allocator(setting)
     torch.set_num_threads(threads)
     model = make_model(d_s, d_a)
     obs = TensorDict({"observation": torch.randn(d_s)}, [])
     if group == "plans":
-        sample_env = TransformedEnv(EnsembleModelEnv(model, mode="sample"), UncertaintyReward())
-        icem = dict(planning_horizon=H, optim_steps=I, num_candidates=P, top_k=K, num_particles=N)
-        jobs = {"cem-torchrl": CEMPlanner(sample_env, H, I, P * N, K)}
-        jobs.update({key: icem_contender(key, sample_env, softae_env(model), icem)[0] for key in ICEM_ROWS})
+        sample_env, opt_env = pets_env(model), softae_env(model)
+        jobs = {"cem-torchrl": CEMPlanner(sample_env, H, I, P * N, K)}  # as planning_speed.py runs it
+        jobs.update({key: icem_contender(key, sample_env, opt_env, icem_settings(H))[0] for key in ICEM_ROWS})
     else:
         batch = torch.randn(BATCH_ROWS, d_s + d_a)
 

@@ -37,10 +37,10 @@ calls and nothing else (``CEMPlanner`` and the four icem rows; the calls of one 
 replayed with the same row counts, heads, dtype and inference path): what the plan would take if
 everything but the network cost nothing. For our planners it also times the plan's scoring (its
 ``evaluate`` calls), which splits the rest of the plan into the planner's own work (sampling,
-ranking, refitting) and the per-step work between the network calls. Its ratios are the bounds the README argues from: a plan
-cannot beat ``CEMPlanner`` by more than ``CEMPlanner``'s time over its own network calls, nor be
-faster in bf16 than its network calls are (the per-step work between them costs about the same in
-both dtypes).
+ranking, refitting) and the per-step work between the network calls. Its ratios are the bounds the
+README argues from: a plan cannot beat ``CEMPlanner`` by more than ``CEMPlanner``'s time over its
+own network calls, nor be faster in bf16 than its network calls are unless the work between them
+shrinks in bf16 by more than the network does (in no run so far).
 
 ``--profile`` runs ``torch.profiler`` over three plans of each of the four icem rows at the arm's
 shape and prints what their op time goes to: the network's layers, and the largest other ops in ms
@@ -146,6 +146,16 @@ def make_model(d_s, d_a, seed=0, ensemble_size=5):
     obs = torch.randn(1000, d_s)
     m.fit_normalizers(obs, torch.rand(1000, d_a) * 2 - 1, obs + 0.1 * torch.randn(1000, d_s))
     return m.eval()
+
+
+def pets_env(model):
+    """PETS-AE's model env as the planner sees it: trajectory sampling and the exploration reward."""
+    return TransformedEnv(EnsembleModelEnv(model, mode="sample"), UncertaintyReward())
+
+
+def icem_settings(H: int) -> dict:
+    """The paper's iCEM budget (P candidates, K elites, I iterations, N particles) at horizon ``H``."""
+    return dict(planning_horizon=H, optim_steps=I, num_candidates=P, top_k=K, num_particles=N)
 
 
 def softae_env(model):
@@ -263,8 +273,8 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10) -> li
     and the H network calls alone, fp32 and bf16, interleaved. The hand-written loop's returns must
     equal ours."""
     model = make_model(d_s, d_a)
-    base = EnsembleModelEnv(model, mode="optimistic")
-    env = TransformedEnv(base, Compose(HallucinatedControl(2.0), UncertaintyReward()))
+    env = softae_env(model)
+    base = env.base_env
     rows = P + KEPT
     g = torch.Generator().manual_seed(0)
     start = TensorDict({"observation": torch.randn(1, d_s, generator=g)}, [1])
@@ -348,10 +358,9 @@ def profile_plans(plans: int = 3, top: int = 6, d_s: int = 58, d_a: int = 12, H:
     from torch.profiler import profile
 
     model = make_model(d_s, d_a)
-    sample_env = TransformedEnv(EnsembleModelEnv(model, mode="sample"), UncertaintyReward())
-    opt_env = softae_env(model)
+    sample_env, opt_env = pets_env(model), softae_env(model)
     obs = TensorDict({"observation": torch.randn(d_s)}, [])
-    icem = dict(planning_horizon=H, optim_steps=I, num_candidates=P, top_k=K, num_particles=N)
+    icem = icem_settings(H)
     out = []
     with torch.no_grad():
         for key in ICEM_ROWS:
@@ -603,9 +612,8 @@ def main():
         print(f"timing {name}: {repeats} interleaved rounds", flush=True)
         model = make_model(d_s, d_a)
         obs = TensorDict({"observation": torch.randn(d_s)}, [])
-        sample_env = TransformedEnv(EnsembleModelEnv(model, mode="sample"), UncertaintyReward())
-        opt_env = softae_env(model)
-        icem = dict(planning_horizon=H, optim_steps=I, num_candidates=P, top_k=K, num_particles=N)
+        sample_env, opt_env = pets_env(model), softae_env(model)
+        icem = icem_settings(H)
         planners = {"cem-torchrl": (CEMPlanner(sample_env, H, I, P * N, K), "fp32", P * N)}
         if have_mbrl:  # TS-inf in mbrl-lib runs each particle through its own member only: 1/L of the rows
             planners["mbrl-icem"] = (MbrlIcem(d_s, d_a, H), "fp32", P * N // model.ensemble_size)
