@@ -7,6 +7,7 @@ from tensordict import TensorDict
 from torchrl_softae.modules import EnsembleWorldModel, ensemble_std
 from torchrl_softae.modules import ensemble as ensemble_module
 from torchrl_softae.modules import moments_kernel, silu_kernel
+from torchrl_softae.modules.precision import onednn_bf16_available
 from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 
 
@@ -326,7 +327,39 @@ def test_fused_activation_path_computes_what_the_training_path_computes(activati
     with torch.no_grad():
         torch.testing.assert_close(model.network(x)[0], ref, rtol=1e-4, atol=1e-5)
         model.planning_dtype = torch.bfloat16
+        if not onednn_bf16_available():  # e.g. AVX2 only: oneDNN has no bf16 convolution to fuse into
+            with pytest.raises(RuntimeError, match="needs oneDNN's bf16 convolution"):
+                model.network(x)
+            return
         assert (model.network(x)[0] - ref).abs().max() < 0.05 * ref.abs().max()
+
+
+def test_without_onednn_bf16_the_conv_paths_run_bf16_unpacked_and_auto_never_fuses(monkeypatch):
+    """Where oneDNN has no bf16 convolution (a CPU with AVX2 only: its fused and pre-packed ops
+    raise for bf16), bf16 on the conv paths runs torch's plain convolution on unpacked weights, the
+    measured choice never offers the fused path, and forcing it names what is missing."""
+    monkeypatch.setattr(ensemble_module, "onednn_bf16_available", lambda: False)
+    torch.manual_seed(0)
+    model = EnsembleWorldModel(6, 2, num_cells=32, depth=3).eval()
+    x = torch.randn(300, 8)
+    ref = model.network(x)[0].detach()
+    model.planning_dtype = torch.bfloat16
+    with torch.no_grad():
+        for path in ("conv", "bmm"):
+            model.inference_path = path
+            assert (model.network(x)[0] - ref).abs().max() < 0.05 * ref.abs().max()
+        bf16_conv = [key for key in model._inference_cache if key[1:3] == ("conv", torch.bfloat16)]
+        assert bf16_conv and all(key[4] is None for key in bf16_conv)  # (id, "conv", dtype, cols, rows packed for)
+        model.inference_path = "conv-fused"
+        with pytest.raises(RuntimeError, match="'conv-fused' in torch.bfloat16 needs oneDNN's bf16 convolution"):
+            model.network(x)
+        model.inference_path = "auto"
+        chosen = []
+        monkeypatch.setattr(ensemble_module.paths, "choose", lambda key, candidates: chosen.append(
+            (key, sorted(candidates))) or "conv")
+        model.network(x)
+    (key, candidates), = chosen
+    assert "conv-fused" not in candidates and "plain conv weights" in key
 
 
 @pytest.mark.skipif(ensemble_module._PACK_CONV_WEIGHT is None, reason="this torch build has no oneDNN weight pre-packing")
@@ -340,7 +373,8 @@ def test_packed_conv_weights_match(monkeypatch):
     monkeypatch.setattr(ensemble_module, "_EXACT_PACKS", 1)
     model = EnsembleWorldModel(6, 2, num_cells=32, depth=3).eval()
     xs = [torch.randn(n, 8) for n in (200, 7, 1, 300)]
-    for dtype in (None, torch.bfloat16):
+    # (bf16 packs only where oneDNN has bf16 convolutions: see the test above)
+    for dtype in (None, torch.bfloat16) if onednn_bf16_available() else (None,):
         model.planning_dtype = dtype
         for path in ("conv", "conv-fused"):
             model.inference_path = path

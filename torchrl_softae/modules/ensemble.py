@@ -30,7 +30,7 @@ from torchrl_softae.modules import moments_kernel as _moments_kernel
 from torchrl_softae.modules import paths
 from torchrl_softae.modules import silu_kernel as _silu_kernel
 from torchrl_softae.modules.paths import INFERENCE_PATHS
-from torchrl_softae.modules.precision import resolve_planning_dtype
+from torchrl_softae.modules.precision import onednn_bf16_available, resolve_planning_dtype
 
 __all__ = ["EnsembleLinear", "Normalizer", "EnsembleWorldModel", "ensemble_std", "symlog", "symexp"]
 
@@ -47,6 +47,11 @@ def _conv_weight_packer():
 
 
 _PACK_CONV_WEIGHT = _conv_weight_packer()
+
+
+def _onednn_runs(dtype: torch.dtype) -> bool:
+    """Whether oneDNN's own convolution (fused post-ops, pre-packed weights) takes ``dtype`` here."""
+    return dtype != torch.bfloat16 or onednn_bf16_available()
 
 
 #: Live models whose inference caches an optimizer step must clear (see :func:`_after_optimizer_step`).
@@ -419,6 +424,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
             if forced not in self.available_inference_paths():
                 raise RuntimeError(f"inference path {forced!r} needs nn.SiLU and the compiled kernel "
                                    f"(activation {type(self.activation).__name__}, kernel built: {_silu_kernel.available()})")
+            if forced == "conv-fused" and not _onednn_runs(dtype):
+                raise RuntimeError(f"inference path 'conv-fused' in {dtype} needs oneDNN's bf16 convolution, which "
+                                   "this CPU lacks (AVX512-BW/VL/DQ or AVX-NE-CONVERT); expected another path or fp32")
             return forced
         rows = _row_bucket(x.shape[0])
         memo = (dtype, rows, cols, torch.get_num_threads())
@@ -427,11 +435,11 @@ class EnsembleWorldModel(TensorDictModuleBase):
         shapes = ",".join(f"{layer.in_features}x{layer.out_features}" for layer in self.layers)
         # packed conv weights change how fast the conv paths are: a choice measured without them
         # (an older cache) is not this choice
-        packing = "packed conv weights" if _PACK_CONV_WEIGHT is not None else "plain conv weights"
+        packing = "packed conv weights" if self._packs_conv_weights(dtype) else "plain conv weights"
         key = f"ensemble {self.ensemble_size}|{shapes}|{dtype}|rows {rows}|cols {cols}|{packing}"
         probe = torch.randn(rows, x.shape[1], dtype=x.dtype, generator=torch.Generator().manual_seed(0))
         candidates = {p: (lambda p=p: self._run_path(p, probe, dtype, cols)) for p in self.available_inference_paths()
-                      if p != "conv-fused" or self._fused_activation() is not None}
+                      if p != "conv-fused" or (self._fused_activation() is not None and _onednn_runs(dtype))}
         self._path_memo[memo] = paths.choose(key, candidates)
         return self._path_memo[memo]
 
@@ -495,7 +503,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         h = x.to(dtype).t().unsqueeze(0).unsqueeze(-1)  # (1, in, N, 1), channels-last view of x
         last = len(self.layers) - 1
         attr = self._fused_activation() if fused else None
-        packed = _PACK_CONV_WEIGHT is not None
+        packed = self._packs_conv_weights(dtype)
         for i, layer in enumerate(self.layers):
             groups = 1 if i == 0 else L
             w, b = self._conv_weights(layer, dtype, cols if i == last else None, groups, n if packed else None)
@@ -509,6 +517,11 @@ class EnsembleWorldModel(TensorDictModuleBase):
                 h = self._activate_(h, silu_kernel)
         # (1, L * out, N, 1) channels-last is an (N, L * out) buffer: view it as (L, N, out)
         return h.squeeze(0).squeeze(-1).t().reshape(n, L, -1).transpose(0, 1)
+
+    @staticmethod
+    def _packs_conv_weights(dtype: torch.dtype) -> bool:
+        """Whether the conv paths pre-pack their weights in ``dtype`` (where oneDNN takes it)."""
+        return _PACK_CONV_WEIGHT is not None and _onednn_runs(dtype)
 
     def _pack_rows(self, rows: int) -> int:
         """The row count to pack convolution weights for: ``rows`` itself for the first

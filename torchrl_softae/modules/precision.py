@@ -6,7 +6,7 @@ import platform
 
 import torch
 
-__all__ = ["cpu_flags", "fast_bf16_available", "resolve_planning_dtype"]
+__all__ = ["cpu_flags", "fast_bf16_available", "onednn_bf16_available", "resolve_planning_dtype"]
 
 
 @functools.lru_cache(maxsize=1)
@@ -28,6 +28,18 @@ def fast_bf16_available() -> bool:
     if {"amx_bf16", "avx512_bf16"} & flags:
         return True
     return platform.machine() in ("arm64", "aarch64") and "bf16" in flags
+
+
+@functools.lru_cache(maxsize=1)
+def onednn_bf16_available() -> bool:
+    """``True`` when oneDNN's own bf16 convolutions run on this CPU (AVX512-BW/VL/DQ or
+    AVX-NE-CONVERT; torch's own check). Without it ``torch.ops.mkldnn._convolution_pointwise`` and
+    its weight pre-packing raise for bf16 (seen on an AMD EPYC with AVX2 only), and ``F.conv2d``
+    falls back to a reference kernel; fp32 is unaffected."""
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
 
 
 def resolve_planning_dtype(precision: str, device=None) -> torch.dtype | None:
