@@ -95,3 +95,13 @@ def test_log_output_is_plain_lines_without_a_terminal(tmp_path, capsys):
     assert sum(line.startswith("episode ") for line in lines) == 2
     assert "results in" in lines[-1]
     assert "\x1b[" not in cap.out + cap.err and "\r" not in cap.err  # no colour codes, no progress bars
+
+
+def test_the_engine_line_warns_when_bf16_is_asked_for_without_native_bf16(monkeypatch):
+    from torchrl_softae.modules import precision
+    from torchrl_softae.pipeline.cli import _engine
+
+    for native in (True, False):
+        monkeypatch.setattr(precision, "fast_bf16_available", lambda native=native: native)
+        assert ("no native bf16" in _engine("bf16", 2)) is not native
+        assert "no native bf16" not in _engine("fp32", 2)

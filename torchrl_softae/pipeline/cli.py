@@ -59,10 +59,14 @@ def cmd_explore(args) -> int:
 
 
 def _engine(precision: str, threads: int) -> str:
-    from torchrl_softae.modules.precision import resolve_planning_dtype
+    from torchrl_softae.modules.precision import fast_bf16_available, resolve_planning_dtype
 
     dtype = resolve_planning_dtype(precision)
-    return f"planning in {'bf16' if dtype is not None else 'fp32'} (precision={precision}) on the CPU, {threads} torch threads"
+    line = f"planning in {'bf16' if dtype is not None else 'fp32'} (precision={precision}) on the CPU, {threads} torch threads"
+    if dtype is not None and not fast_bf16_available():  # torch emulates it: ~60x below fp32 (AVX2 EPYC)
+        line += ("; this CPU has no native bf16 (AMX-BF16, AVX512-BF16), so bf16 planning runs far slower "
+                 "than fp32: --precision auto picks fp32 here")
+    return line
 
 
 def cmd_evaluate(args) -> int:
