@@ -11,7 +11,7 @@ large call run in separate children: the large call's allocations change glibc's
 it whether the plans' allocations fault. The
 contenders are those of ``planning_speed.py`` at the paper's iCEM settings: TorchRL's
 ``CEMPlanner`` (under ``torch.no_grad()``), our iCEM with 10 particles and with one (SoftAE), fp32
-and bf16, plus one network call at the rows of 8 such plans as one batch (``eval_batch_speed.py``
+and bf16 (bf16 only where the CPU has it natively, as ``planning_speed.py`` decides), plus one network call at the rows of 8 such plans as one batch (``eval_batch_speed.py``
 and ``seed_batch_speed.py`` make calls that large). Every child reports its median ms, the minor
 page faults per plan and its peak resident memory; the table gives, per contender, the median over
 rounds of each setting and the ratio default / kept (median and best of the rounds' ratios).
@@ -48,16 +48,21 @@ def child(group: str, setting: str, plans: int, threads: int, d_s: int, d_a: int
     from torchrl.modules import CEMPlanner
 
     from planning_speed import (
-        ICEM_ROWS, I, K, N, P, icem_contender, icem_settings, make_model, pets_env, softae_env, use_allocator)
+        ICEM_ROWS, I, K, N, P, contender_precision, icem_contender, icem_settings, make_model, pets_env, softae_env,
+        timed_precisions, use_allocator)
+
+    from torchrl_softae.modules.precision import resolve_planning_dtype
 
     allocator = use_allocator(setting)
+    precisions = timed_precisions()  # bf16 only where it is native
     torch.set_num_threads(threads)
     model = make_model(d_s, d_a)
     obs = TensorDict({"observation": torch.randn(d_s)}, [])
     if group == "plans":
         sample_env, opt_env = pets_env(model), softae_env(model)
         jobs = {"cem-torchrl": CEMPlanner(sample_env, H, I, P * N, K)}  # as planning_speed.py runs it
-        jobs.update({key: icem_contender(key, sample_env, opt_env, icem_settings(H))[0] for key in ICEM_ROWS})
+        jobs.update({key: icem_contender(key, sample_env, opt_env, icem_settings(H))[0] for key in ICEM_ROWS
+                     if contender_precision(key) in precisions})
     else:
         batch = torch.randn(BATCH_ROWS, d_s + d_a)
 
@@ -70,7 +75,7 @@ def child(group: str, setting: str, plans: int, threads: int, d_s: int, d_a: int
                     model.planning_dtype = None
             return fn
 
-        jobs = {"network-8-plans-fp32": batch_call(None), "network-8-plans-bf16": batch_call(torch.bfloat16)}
+        jobs = {f"network-8-plans-{name}": batch_call(resolve_planning_dtype(name)) for name in precisions}
     faults = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_minflt  # noqa: E731
     times = {k: [] for k in jobs}
     fault_counts = {k: [] for k in jobs}

@@ -36,8 +36,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from planning_speed import (  # noqa: E402
-    NetworkCallsAlone, RecordNetworkCalls, allocator_option, best_peaks, cpu_description, cpu_kind, peaks,
-    use_allocator)
+    NetworkCallsAlone, RecordNetworkCalls, allocator_option, best_peaks, bf16_option, check_precision, cpu_description,
+    cpu_kind, peaks, use_allocator)
 
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS  # noqa: E402
 from torchrl_softae.pipeline.builders import build_world_model  # noqa: E402
@@ -68,7 +68,9 @@ def main():
                    help="the planner's hidden-layer precision (default fp32, the record's first column)")
     p.add_argument("--out", default=None, help="default benchmarks/results/eval_batch_speed-KIND[-bf16].json")
     allocator_option(p)
+    bf16_option(p)
     args = p.parse_args()
+    check_precision(p, args.precision, args.force_bf16)
     allocator = use_allocator(args.allocator)
     repeats = max(args.repeats, 3)
     torch.set_num_threads(args.threads)
@@ -78,7 +80,7 @@ def main():
            else Path(__file__).parent / "results" / f"eval_batch_speed-{cpu_kind(cpu)}{suffix}.json")
     print(f"# eval_batch_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; planner precision {args.precision}; allocator: {allocator}", flush=True)
-    pk = peaks()
+    pk = peaks(precisions=(args.precision,))
     results = {"cpu": cpu, "threads": args.threads, "repeats": repeats, "precision": args.precision,
                "allocator": allocator, "envs": {}}
     for env_id in args.envs:
@@ -105,7 +107,7 @@ def main():
                         t = time.perf_counter()
                         alone()
                         alone_times.append(time.perf_counter() - t)
-            pk = peaks(repeats=2, so_far=pk)  # between rounds, so a noisy moment cannot set the peak
+            pk = peaks(repeats=2, so_far=pk, precisions=(args.precision,))  # between rounds, so a noisy moment cannot set the peak
         med = {m: statistics.median(v) for m, v in times.items()}
         best = {m: min(v) for m, v in times.items()}
         row = {"task": task.name, "episodes": args.episodes, "steps": args.steps, "horizon": cfg.planner.horizon,

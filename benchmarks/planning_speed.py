@@ -18,7 +18,7 @@ reported as median and best, so a noisy machine cannot make one ratio out of one
   icem-bf16-full    same with bf16 hidden layers
   icem-fp32-dedup   our ICEMPlanner, SoftAE (optimistic, deterministic): 1 particle
   icem-bf16-dedup   same with bf16 hidden layers
-  icem-deadline     SoftAE bf16 with a 50 ms wall-clock budget per action
+  icem-deadline     SoftAE bf16 with a 50 ms wall-clock budget per action (fp32 where bf16 is not native)
   ...@PATH          (--compare-paths) the four icem rows with the ensemble's inference path fixed
                     (each of EnsembleWorldModel.available_inference_paths()) instead of measured at first use
   ...@torch-moments (--compare-moments) the four icem rows with mu and sigma computed by torch ops
@@ -50,6 +50,10 @@ per plan.
 particle, the arm's shape) against the same with mu and sigma by torch ops, a hand-written loop of
 the same arithmetic (torch ops, checked equal) and its network calls alone: what the horizon loop
 costs beyond the model.
+
+On a CPU without native bf16 (no AMX-BF16, no AVX512-BF16: an AMD EPYC with AVX2 only is one) the
+bf16 contenders, peaks and columns are left out (:func:`timed_precisions`; ``--force-bf16`` keeps
+them): torch emulates bf16 there far below fp32 and ``precision="auto"`` plans in fp32.
 
 Prints the CPU (vendor, AVX-512, AVX512-BF16, AMX), the GEMM peaks of every path measured in the
 same run (MKL ``a @ b`` and oneDNN 1x1 convolution, fp32 and bf16), and "% of peak" against the
@@ -83,7 +87,8 @@ from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, Uncertain
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
 from torchrl_softae.modules.ensemble import ensemble_std
 from torchrl_softae.modules import moments_kernel, silu_kernel
-from torchrl_softae.modules.precision import cpu_flags, resolve_planning_dtype
+from torchrl_softae.modules.precision import (
+    cpu_flags, fast_bf16_available, onednn_bf16_available, resolve_planning_dtype)
 
 SHAPES = [  # (name, d_s, d_a, H)
     ("arm58", 58, 12, 10),
@@ -118,6 +123,27 @@ def use_allocator(choice: str) -> str:
     if choice == "kept":
         return "kept freed memory" if keep_freed_memory() else "default (keep_freed_memory does not apply here)"
     return "default"
+
+
+def bf16_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force-bf16", action="store_true",
+                   help="time bf16 even where the CPU has no native bf16 (torch emulates it: a full run takes hours)")
+
+
+def timed_precisions(force_bf16: bool = False) -> tuple[str, ...]:
+    """The planner precisions a run times: bf16 only where the CPU runs it natively (AMX-BF16,
+    AVX512-BF16: :func:`fast_bf16_available`, what ``precision="auto"`` asks) or when forced.
+    Elsewhere torch emulates bf16 far below fp32 (an AMD EPYC with AVX2 only: 0.9 against 54
+    GFLOP/s at 1024^3, a one-particle arm plan 17.8 s against 0.32 s), ``"auto"`` plans in fp32 and
+    no bf16 target applies."""
+    return ("fp32", "bf16") if force_bf16 or fast_bf16_available() else ("fp32",)
+
+
+def check_precision(p: argparse.ArgumentParser, precision: str, force_bf16: bool) -> None:
+    """One line and exit 2 for ``--precision bf16`` where bf16 is not timed (:func:`timed_precisions`)."""
+    if precision == "bf16" and "bf16" not in timed_precisions(force_bf16):
+        p.error("--precision bf16: this CPU has no native bf16 (AMX-BF16, AVX512-BF16), torch would emulate it "
+                "far below fp32; expected --precision fp32 here (or --force-bf16 to time the emulation)")
 
 
 def cpu_description() -> dict:
@@ -174,13 +200,16 @@ def _best(fn, repeats=10):
     return best
 
 
-def peaks(n=2048, repeats=10, so_far: dict | None = None) -> dict:
+def peaks(n=2048, repeats=10, so_far: dict | None = None, precisions=("fp32", "bf16")) -> dict:
     """GFLOP/s of one n x n GEMM through MKL (``a @ b``) and through oneDNN (1x1 convolution), the
     best of ``repeats`` calls each, or of those and ``so_far`` (a peak measured earlier in the run):
     on a shared host interference only ever lowers a peak, so a benchmark measures them again
-    between its rounds and keeps the best (one run's start-up peaks were half the true ones)."""
+    between its rounds and keeps the best (one run's start-up peaks were half the true ones).
+    ``precisions``: the dtypes to measure (the run's :func:`timed_precisions`)."""
     out = dict(so_far or {})
     for dtype, name in ((torch.float32, "fp32"), (torch.bfloat16, "bf16")):
+        if name not in precisions:
+            continue
         a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
         x, w = a.t().reshape(1, n, n, 1), b.reshape(n, n, 1, 1).to(memory_format=torch.channels_last)
         for key, fn in ((f"matmul_{name}", lambda: a @ b),
@@ -189,23 +218,26 @@ def peaks(n=2048, repeats=10, so_far: dict | None = None) -> dict:
     return out
 
 
-def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256) -> list[dict]:
+def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256,
+                precisions=("fp32", "bf16")) -> list[dict]:
     """Median microseconds of one hidden layer's GEMM, its SiLU and the fused GEMM + SiLU, and of
     the whole arm-sized network (``network_output``, every layer as the planner runs it: the
     inference path measured at first use, the log-variance head with 10 particles, as PETS-AE
-    needs it), per dtype and row count (``repeats`` interleaved rounds of ``calls`` calls each)."""
+    needs it), per dtype in ``precisions`` and row count (``repeats`` interleaved rounds of
+    ``calls`` calls each)."""
     F = torch.nn.functional
     rows_of = {"1 particle": P + KEPT, "10 particles": (P + KEPT) * N}
     model = make_model(58, 12)
     jobs = {}
     for label, n in rows_of.items():
         x_in = torch.randn(n, 70, generator=torch.Generator().manual_seed(0))
-        for dtype in (None, torch.bfloat16):
-            def network(dtype=dtype, x_in=x_in, with_logvar=label == "10 particles"):
+        for name in precisions:
+            def network(dtype=resolve_planning_dtype(name), x_in=x_in, with_logvar=label == "10 particles"):
                 model.planning_dtype = dtype
                 model.network_output(x_in, with_logvar)
-            jobs[(label, "bf16" if dtype else "fp32", "network")] = network
-        for dtype in (torch.float32, torch.bfloat16):
+            jobs[(label, name, "network")] = network
+        for name in precisions:
+            dtype = resolve_planning_dtype(name) or torch.float32
             g = torch.Generator().manual_seed(0)
             x = torch.randn(L, n, h, generator=g).to(dtype)
             w = (torch.randn(L, h, h, generator=g) / h**0.5).to(dtype)
@@ -213,12 +245,11 @@ def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256) -> list
             xc = torch.randn(n, L * h, generator=g).to(dtype).t().unsqueeze(0).unsqueeze(-1)  # (1, L*h, n, 1)
             wc = w.transpose(1, 2).reshape(L * h, h, 1, 1).contiguous().to(memory_format=torch.channels_last)
             bc = torch.zeros(L * h, dtype=dtype)
-            name = "bf16" if dtype == torch.bfloat16 else "fp32"
             jobs[(label, name, "gemm")] = lambda x=x, w=w: torch.bmm(x, w)
             jobs[(label, name, "silu")] = lambda y=y: F.silu(y, inplace=True)
             if silu_kernel.available():
                 jobs[(label, name, "silukernel")] = lambda y=y: silu_kernel.silu_(y)
-            if hasattr(torch.ops.mkldnn, "_convolution_pointwise"):
+            if hasattr(torch.ops.mkldnn, "_convolution_pointwise") and (name == "fp32" or onednn_bf16_available()):
                 jobs[(label, name, "fused")] = lambda xc=xc, wc=wc, bc=bc: torch.ops.mkldnn._convolution_pointwise(
                     xc, wc, bc, [0, 0], [1, 1], [1, 1], L, "swish", [], "")
     times = {k: [] for k in jobs}
@@ -234,7 +265,7 @@ def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256) -> list
     out = []
     for label, n in rows_of.items():
         row = {"rows": n, "particles": label}
-        for name in ("fp32", "bf16"):
+        for name in precisions:
             for part in ("gemm", "silu", "silukernel", "fused", "network"):
                 if (label, name, part) in times:
                     row[f"{name}_{part}_us"] = 1e6 * statistics.median(times[(label, name, part)])
@@ -245,6 +276,16 @@ def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256) -> list
 def print_layer_costs(rows: list[dict]) -> None:
     """SiLU share and layer ratio with the fastest SiLU of each dtype (torch's or the kernel)."""
     parts = ("gemm", "silu", "silukernel", "fused")
+    if "bf16_gemm_us" not in rows[0]:  # fp32 only (no native bf16 here)
+        print("\n| one hidden layer (5 x 256 -> 256) | rows | fp32 GEMM / SiLU torch / SiLU kernel / fused [us] "
+              "| SiLU share of an fp32 layer (fastest SiLU) | the whole network, (58, 12) [us] |")
+        print("|---|---|---|---|---|")
+        for r in rows:
+            silu = min(r[k] for k in ("fp32_silu_us", "fp32_silukernel_us") if k in r)
+            cols = " / ".join(f"{r[k]:.0f}" if (k := f"fp32_{p}_us") in r else "-" for p in parts)
+            print(f"| {r['particles']} | {r['rows']} | {cols} | {100 * silu / (r['fp32_gemm_us'] + silu):.0f}% "
+                  f"| {r['fp32_network_us']:.0f} |")
+        return
     print("\n| one hidden layer (5 x 256 -> 256) | rows | fp32 GEMM / SiLU torch / SiLU kernel / fused [us] "
           "| bf16 GEMM / SiLU torch / SiLU kernel / fused [us] | SiLU share of a bf16 layer (fastest SiLU) "
           "| GEMM bf16/fp32 | layer bf16/fp32 (fastest SiLU each) |")
@@ -266,7 +307,8 @@ def print_layer_costs(rows: list[dict]) -> None:
               f"| {r['fp32_network_us'] / r['bf16_network_us']:.2f}x |")
 
 
-def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10) -> list[dict]:
+def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10,
+                  precisions=("fp32", "bf16")) -> list[dict]:
     """Median milliseconds of one SoftAE candidate evaluation (``evaluate_action_sequences``, the
     ``HallucinatedControl`` + ``UncertaintyReward`` stack, one particle, P + kept elites rows, H
     steps) against the same with mu and sigma by torch ops, a hand-written loop of the same arithmetic
@@ -318,12 +360,13 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10) -> li
 
     parts = ["ours", "hand", "network"] + (["ours_torch_moments"] if moments_kernel.available() else [])
     jobs = {}
-    for name, dtype in (("fp32", None), ("bf16", torch.bfloat16)):
+    for name in precisions:
+        dtype = resolve_planning_dtype(name)
         jobs[(name, "ours")], jobs[(name, "hand")], jobs[(name, "network")] = ours(name), hand(dtype), network(dtype)
         if "ours_torch_moments" in parts:  # mu and sigma by torch ops, as the hand-written loop computes them
             jobs[(name, "ours_torch_moments")] = ours(name, fused_moments=False)
     with torch.no_grad():
-        for name in ("fp32", "bf16"):
+        for name in precisions:
             a, b = jobs[(name, "ours")](), jobs[(name, "hand")]()
             if not torch.allclose(a, b, rtol=1e-3, atol=1e-3):
                 raise AssertionError(f"the hand-written {name} loop disagrees with evaluate_action_sequences")
@@ -335,7 +378,7 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10) -> li
                 times[key].append(time.perf_counter() - t)
     return [{"dtype": name, "rows": rows, "H": H,
              **{f"{part}_ms": 1e3 * statistics.median(times[(name, part)]) for part in parts}}
-            for name in ("fp32", "bf16")]
+            for name in precisions]
 
 
 #: the ops that run the network's layers on the inference paths (the rest is the work between them)
@@ -343,15 +386,21 @@ NETWORK_OPS = ("mkldnn::_convolution_pointwise", "aten::convolution", "aten::mkl
                "aten::bmm", "aten::baddbmm", "aten::addmm", "aten::silu_", "torchrl_softae::silu_")
 
 
+def contender_precision(key: str) -> str:
+    """The planning precision of an icem contender (its key names it)."""
+    return "bf16" if "bf16" in key else "fp32"
+
+
 def icem_contender(key: str, sample_env, opt_env, icem: dict) -> tuple:
     """``(planner, precision, None)`` for ``key``, one of :data:`ICEM_ROWS` or a variant of one
     (``...@PATH``): the sample env for "full" rows, SoftAE's for "dedup" ones, bf16 where the key says so."""
-    precision = "bf16" if "bf16" in key else "fp32"
+    precision = contender_precision(key)
     return ICEMPlanner(sample_env if "full" in key else opt_env, precision=precision, **icem), precision, None
 
 
-def profile_plans(plans: int = 3, top: int = 6, d_s: int = 58, d_a: int = 12, H: int = 10) -> list[dict]:
-    """``torch.profiler`` over ``plans`` plans of each of the four icem rows: the share of self CPU
+def profile_plans(plans: int = 3, top: int = 6, d_s: int = 58, d_a: int = 12, H: int = 10,
+                  keys=ICEM_ROWS) -> list[dict]:
+    """``torch.profiler`` over ``plans`` plans of each icem row in ``keys``: the share of self CPU
     time in the network's layers (:data:`NETWORK_OPS`) and the ``top`` largest other ops, ms per plan;
     and the median of ``plans`` plans timed without the profiler right before, in the same process
     (op time is held against these, not against the rounds, which ran at other moments)."""
@@ -363,7 +412,7 @@ def profile_plans(plans: int = 3, top: int = 6, d_s: int = 58, d_a: int = 12, H:
     icem = icem_settings(H)
     out = []
     with torch.no_grad():
-        for key in ICEM_ROWS:
+        for key in keys:
             planner, *_ = icem_contender(key, sample_env, opt_env, icem)
             planner(obs.clone())
             planner(obs.clone())
@@ -444,7 +493,7 @@ def flops_per_row(model, with_logvar: bool = True) -> int:
 
 def best_peaks(pk: dict) -> dict:
     """The best GEMM peak of each dtype among the paths :func:`peaks` measured, GFLOP/s."""
-    return {"fp32": max(pk["matmul_fp32"], pk["onednn_fp32"]), "bf16": max(pk["matmul_bf16"], pk["onednn_bf16"])}
+    return {name: max(pk[f"matmul_{name}"], pk[f"onednn_{name}"]) for name in ("fp32", "bf16") if f"matmul_{name}" in pk}
 
 
 def flops_per_action(model, rows, H, iters, first_rows=None, with_logvar=True):
@@ -585,18 +634,24 @@ def main():
                    help="default benchmarks/results/planning_speed-KIND.json, KIND = amx, avx512-bf16 or no-bf16: "
                         "the project's machines differ in CPU, and each kind keeps its own record")
     allocator_option(p)
+    bf16_option(p)
     args = p.parse_args()
     allocator = use_allocator(args.allocator)
+    precisions = timed_precisions(args.force_bf16)
+    icem_rows = tuple(k for k in ICEM_ROWS if contender_precision(k) in precisions)
     repeats = max(args.repeats, 5)
     torch.set_num_threads(args.threads)
     shapes = [s for s in SHAPES if not args.quick or s[0] in ("arm58", "sopra32-H5")]
     cpu = cpu_description()
     out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"planning_speed-{cpu_kind(cpu)}.json"
-    pk = peaks()
+    pk = peaks(precisions=precisions)
     print(f"# planning_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; allocator: {allocator}")
     print(f"compiled SiLU kernel: {silu_kernel.isa() or 'not built (torch SiLU only)'}; one-pass moments kernel: "
           f"{'yes' if moments_kernel.available() else 'no (not built, or no AVX-512: torch ops)'}", flush=True)
+    if "bf16" not in precisions:
+        print("bf16 contenders skipped: this CPU has no native bf16 (AMX-BF16, AVX512-BF16); precision='auto' plans "
+              "in fp32 here and no bf16 target applies (--force-bf16 times torch's emulation anyway)", flush=True)
     try:
         import mbrl  # noqa: F401
 
@@ -605,7 +660,7 @@ def main():
         have_mbrl = False
         print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} ({MBRL_INSTALL})")
     results = {"cpu": cpu, "silu_kernel_isa": silu_kernel.isa(), "moments_kernel": moments_kernel.available(),
-               "threads": args.threads, "allocator": allocator,
+               "threads": args.threads, "allocator": allocator, "precisions": list(precisions),
                "repeats": repeats, "rows": []}
     timed = []  # per shape: what the table needs once every round (and every peak) is measured
     for name, d_s, d_a, H in shapes:
@@ -617,17 +672,20 @@ def main():
         planners = {"cem-torchrl": (CEMPlanner(sample_env, H, I, P * N, K), "fp32", P * N)}
         if have_mbrl:  # TS-inf in mbrl-lib runs each particle through its own member only: 1/L of the rows
             planners["mbrl-icem"] = (MbrlIcem(d_s, d_a, H), "fp32", P * N // model.ensemble_size)
-        planners.update({key: icem_contender(key, sample_env, opt_env, icem) for key in ICEM_ROWS})
-        planners["icem-deadline"] = (ICEMPlanner(opt_env, precision="bf16", time_budget=0.05, **icem), "bf16", None)
+        planners.update({key: icem_contender(key, sample_env, opt_env, icem) for key in icem_rows})
+        fastest = precisions[-1]  # SoftAE as fast as this CPU plans it: bf16 where native
+        planners["icem-deadline"] = (ICEMPlanner(opt_env, precision=fastest, time_budget=0.05, **icem), fastest, None)
         path_of = {}  # contender -> the inference path it runs with ("auto": measured at first use)
         if args.compare_paths:
-            for key in ICEM_ROWS:
+            for key in icem_rows:
                 for path in model.available_inference_paths():
+                    if path == "conv-fused" and contender_precision(key) == "bf16" and not onednn_bf16_available():
+                        continue
                     planners[f"{key}@{path}"] = icem_contender(key, sample_env, opt_env, icem)
                     path_of[f"{key}@{path}"] = path
         torch_moments = set()  # contenders whose mu and sigma are torch ops (the kernel's baseline)
         if args.compare_moments and moments_kernel.available():
-            for key in ICEM_ROWS:
+            for key in icem_rows:
                 planners[f"{key}@torch-moments"] = icem_contender(key, sample_env, opt_env, icem)
                 torch_moments.add(f"{key}@torch-moments")
 
@@ -665,7 +723,7 @@ def main():
                         t = time.perf_counter()
                         alone[key]()
                         times[f"{key}:network"].append(time.perf_counter() - t)
-                pk = peaks(repeats=2, so_far=pk)  # between rounds, so a noisy moment cannot set the peak
+                pk = peaks(repeats=2, so_far=pk, precisions=precisions)  # between rounds, so a noisy moment cannot set the peak
         model.inference_path, model.fused_moments = "auto", True
         chosen = sorted({f"{'bf16' if k[0] == torch.bfloat16 else 'fp32'} rows<={k[1]}: {v}"
                          for k, v in model._path_memo.items() if isinstance(v, str)})
@@ -715,25 +773,28 @@ def main():
                   f"{100 * frac:.0f}% ({dtype}) | {at_peak * 1e3:.0f} ms, {base / at_peak:.2f}x |", flush=True)
     for name, *_ in shapes:
         rr = {r["planner"]: r for r in results["rows"] if r["shape"] == name}
-        print(f"{name}: bf16/fp32 full {rr['icem-fp32-full']['median_s'] / rr['icem-bf16-full']['median_s']:.2f}x, "
-              f"bf16/fp32 dedup {rr['icem-fp32-dedup']['median_s'] / rr['icem-bf16-dedup']['median_s']:.2f}x, "
-              f"full fp32 vs CEMPlanner {rr['icem-fp32-full']['speedup_vs_cem_median']:.2f}x, "
+        bf16 = ""
+        if "bf16" in precisions:
+            bf16 = (f"bf16/fp32 full {rr['icem-fp32-full']['median_s'] / rr['icem-bf16-full']['median_s']:.2f}x, "
+                    f"bf16/fp32 dedup {rr['icem-fp32-dedup']['median_s'] / rr['icem-bf16-dedup']['median_s']:.2f}x, ")
+        print(f"{name}: {bf16}full fp32 vs CEMPlanner {rr['icem-fp32-full']['speedup_vs_cem_median']:.2f}x, "
               f"dedup fp32 vs CEMPlanner {rr['icem-fp32-dedup']['speedup_vs_cem_median']:.2f}x "
               f"(at most {rr['icem-fp32-full']['max_speedup_vs_cem']:.2f}x and "
-              f"{rr['icem-fp32-dedup']['max_speedup_vs_cem']:.2f}x with every FLOP at the fp32 peak; bf16/fp32 at "
-              f"most {best_peak['bf16'] / best_peak['fp32']:.2f}x, the peaks' ratio)"
+              f"{rr['icem-fp32-dedup']['max_speedup_vs_cem']:.2f}x with every FLOP at the fp32 peak"
+              + (f"; bf16/fp32 at most {best_peak['bf16'] / best_peak['fp32']:.2f}x, the peaks' ratio)"
+                 if "bf16" in best_peak else ")")
               + (f", full fp32 vs mbrl-lib {rr['mbrl-icem']['median_s'] / rr['icem-fp32-full']['median_s']:.2f}x"
                  if "mbrl-icem" in rr else ""))
     if args.network_alone:
         print_network_alone(results["rows"])
     if args.layer_costs:
-        results["layer_costs"] = layer_costs(repeats)
+        results["layer_costs"] = layer_costs(repeats, precisions=precisions)
         print_layer_costs(results["layer_costs"])
     if args.profile:
-        results["profile"] = profile_plans()
+        results["profile"] = profile_plans(keys=icem_rows)
         print_profile(results["profile"])
     if args.loop_overhead:
-        results["loop_overhead"] = loop_overhead(repeats * 3)
+        results["loop_overhead"] = loop_overhead(repeats * 3, precisions=precisions)
         print_loop_overhead(results["loop_overhead"])
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1))

@@ -41,7 +41,8 @@ from tensordict import TensorDict
 
 sys.path.insert(0, str(Path(__file__).parent))
 from planning_speed import (  # noqa: E402
-    I, K, P, allocator_option, cpu_description, cpu_kind, make_model, softae_env, use_allocator)
+    I, K, P, allocator_option, bf16_option, check_precision, cpu_description, cpu_kind, make_model, softae_env,
+    use_allocator)
 
 from torchrl_softae.modules import ICEMPlanner  # noqa: E402
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS  # noqa: E402
@@ -85,7 +86,9 @@ def main():
     p.add_argument("--precision", choices=PLANNING_PRECISIONS, default="fp32")
     p.add_argument("--out", default=None, help="default benchmarks/results/seed_batch_speed-KIND[-bf16].json")
     allocator_option(p)
+    bf16_option(p)
     args = p.parse_args()
+    check_precision(p, args.precision, args.force_bf16)
     if args.seeds < 2 or args.threads % args.seeds:
         p.error(f"--seeds {args.seeds} with --threads {args.threads}: expected at least 2 seeds that divide the threads")
     S, repeats = args.seeds, max(args.repeats, 5)
