@@ -197,13 +197,16 @@ def main():
             print(f"| {name} {op} {threshold:g} | {where} | not measured | | | |")
             continue
         fmt = (lambda v: f"{v:.0f}") if "%" in name or "ms" in name else (lambda v: f"{v:.2f}x")
+        if fmt(value) == fmt(threshold):  # a value that rounds onto its threshold: show which side it is on
+            fmt = (lambda v: f"{v:.1f}") if "%" in name or "ms" in name else (lambda v: f"{v:.3f}x")
         bounds = " | ".join("" if b is None else fmt(b) for b in (at_peak, alone))
         print(f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bounds} | {'yes' if met else 'no'} |")
     if args.plot:
         path = RESULTS / "plots" / f"speed_targets-{kind}.png"
         drawable = [r for r in checked if r[4] is not None and (r[5], r[6]) != (None, None)]
         if drawable:
-            plot(drawable, kind, record["cpu"]["cpu"], path)
+            cpu = record["cpu"]
+            plot(drawable, kind, f"{cpu['cpu']}, {'AVX-512' if cpu.get('avx512f') else 'no AVX-512'}", path)
             print(f"\nwrote {path}")
         else:
             print(f"\nnothing to draw: the {kind} records have no bounds (rerun planning_speed.py with "
