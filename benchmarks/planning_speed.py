@@ -312,8 +312,8 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10,
     """Median milliseconds of one SoftAE candidate evaluation (``evaluate_action_sequences``, the
     ``HallucinatedControl`` + ``UncertaintyReward`` stack, one particle, P + kept elites rows, H
     steps) against the same with mu and sigma by torch ops, a hand-written loop of the same arithmetic
-    and the H network calls alone, fp32 and bf16, interleaved. The hand-written loop's returns must
-    equal ours."""
+    and the H network calls alone, in each of ``precisions``, interleaved. The hand-written loop's
+    returns must equal ours."""
     model = make_model(d_s, d_a)
     env = softae_env(model)
     base = env.base_env

@@ -65,7 +65,7 @@ def _engine(precision: str, threads: int) -> str:
     line = f"planning in {'bf16' if dtype is not None else 'fp32'} (precision={precision}) on the CPU, {threads} torch threads"
     if dtype is not None and not fast_bf16_available():  # torch emulates it: ~60x below fp32 (AVX2 EPYC)
         line += ("; this CPU has no native bf16 (AMX-BF16, AVX512-BF16), so bf16 planning runs far slower "
-                 "than fp32: --precision auto picks fp32 here")
+                 "than fp32: --set planner.precision=auto picks fp32 here")
     return line
 
 
