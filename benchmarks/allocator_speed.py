@@ -11,8 +11,9 @@ large call run in separate children: the large call's allocations change glibc's
 it whether the plans' allocations fault. The
 contenders are those of ``planning_speed.py`` at the paper's iCEM settings: TorchRL's
 ``CEMPlanner`` (under ``torch.no_grad()``), our iCEM with 10 particles and with one (SoftAE), fp32
-and bf16 (bf16 only where the CPU has it natively, as ``planning_speed.py`` decides), plus one network call at the rows of 8 such plans as one batch (``eval_batch_speed.py``
-and ``seed_batch_speed.py`` make calls that large). Every child reports its median ms, the minor
+and bf16 (bf16 only where the CPU has it natively, as ``planning_speed.py`` decides), plus one
+network call at the rows of 8 such plans as one batch (``eval_batch_speed.py`` and
+``seed_batch_speed.py`` make calls that large). Every child reports its median ms, the minor
 page faults per plan and its peak resident memory; the table gives, per contender, the median over
 rounds of each setting and the ratio default / kept (median and best of the rounds' ratios).
 Results: stdout and benchmarks/results/allocator_speed-KIND.json (KIND: amx, avx512-bf16 or

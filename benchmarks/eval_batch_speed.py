@@ -80,7 +80,9 @@ def main():
            else Path(__file__).parent / "results" / f"eval_batch_speed-{cpu_kind(cpu)}{suffix}.json")
     print(f"# eval_batch_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; planner precision {args.precision}; allocator: {allocator}", flush=True)
-    pk = peaks(precisions=(args.precision,))
+    # the GEMM peak the ratios are held against: bf16's for --precision bf16, fp32's otherwise ("auto" too)
+    peak_dtype = "bf16" if args.precision == "bf16" else "fp32"
+    pk = peaks(precisions=(peak_dtype,))
     results = {"cpu": cpu, "threads": args.threads, "repeats": repeats, "precision": args.precision,
                "allocator": allocator, "envs": {}}
     for env_id in args.envs:
@@ -107,7 +109,8 @@ def main():
                         t = time.perf_counter()
                         alone()
                         alone_times.append(time.perf_counter() - t)
-            pk = peaks(repeats=2, so_far=pk, precisions=(args.precision,))  # between rounds, so a noisy moment cannot set the peak
+            # between rounds, so a noisy moment cannot set the peak
+            pk = peaks(repeats=2, so_far=pk, precisions=(peak_dtype,))
         med = {m: statistics.median(v) for m, v in times.items()}
         best = {m: min(v) for m, v in times.items()}
         row = {"task": task.name, "episodes": args.episodes, "steps": args.steps, "horizon": cfg.planner.horizon,
@@ -123,7 +126,7 @@ def main():
               f"batch {med['batched']:.1f} s (best {best['batched']:.1f}) -> {row['speedup_median']:.2f}x median, "
               f"{row['speedup_best']:.2f}x best; same initial states: {row['same_initial_states']}", flush=True)
     # what bounds the ratio, against the best peaks of the whole run
-    peak = best_peaks(pk)["bf16" if args.precision == "bf16" else "fp32"]
+    peak = best_peaks(pk)[peak_dtype]
     results.update(peaks_gflops=pk, peak_gflops=peak)
     print(f"GEMM peaks (2048^3, best of the start and every round) [GFLOP/s]: "
           + ", ".join(f"{k} {v:.0f}" for k, v in pk.items()) + f"; the planner's dtype: {peak:.0f}")
