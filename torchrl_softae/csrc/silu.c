@@ -9,7 +9,8 @@
  * Built at install time as the optional extension torchrl_softae.modules._silu (pyproject.toml);
  * where it does not build, or where it is not faster, the ensemble uses torch's SiLU: the inference
  * path is measured, never assumed (torchrl_softae/modules/paths.py). The instruction set is chosen
- * at run time (AVX512-BF16, AVX-512F, else portable C), so one build runs on every x86-64 CPU.
+ * at run time (AVX512-BF16, AVX-512F, AVX2 with FMA, else portable C), so one build runs on every
+ * x86-64 CPU.
  * OpenMP threads: the extension links libgomp.so.1, and imported after torch it shares torch's
  * (same soname), so the kernel runs on torch's own thread pool.
  */
@@ -52,6 +53,61 @@ static void silu_bf16_portable(uint16_t *x, int64_t n) {
         x[i] = float_to_bf16(v / (1.0f + expf(-v)));
     }
 }
+
+/* ------------------------------------------------------------------ AVX2 + FMA */
+#ifdef SOFTAE_X86
+__attribute__((target("avx2,fma"))) static inline __m256 exp_avx2(__m256 x) {
+    /* the AVX-512 exp below, 8 lanes: without scalef, 2^k is built in the exponent field, which
+     * the clamp keeps normal (k in [-126, 127]) */
+    x = _mm256_max_ps(_mm256_min_ps(x, _mm256_set1_ps(88.0f)), _mm256_set1_ps(-87.0f));
+    __m256 k = _mm256_round_ps(_mm256_mul_ps(x, _mm256_set1_ps(1.44269504088896341f)),
+                               _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    __m256 r = _mm256_fnmadd_ps(k, _mm256_set1_ps(0.693359375f), x);
+    r = _mm256_fnmadd_ps(k, _mm256_set1_ps(-2.12194440e-4f), r);
+    __m256 p = _mm256_set1_ps(1.0f / 5040.0f);
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.0f / 720.0f));
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.0f / 120.0f));
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.0f / 24.0f));
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.0f / 6.0f));
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(0.5f));
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.0f));
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.0f));
+    __m256i two_k = _mm256_slli_epi32(_mm256_add_epi32(_mm256_cvtps_epi32(k), _mm256_set1_epi32(127)), 23);
+    return _mm256_mul_ps(p, _mm256_castsi256_ps(two_k));
+}
+
+__attribute__((target("avx2,fma"))) static inline __m256 silu_avx2(__m256 v) {
+    __m256 e = exp_avx2(_mm256_sub_ps(_mm256_setzero_ps(), v));
+    return _mm256_div_ps(v, _mm256_add_ps(_mm256_set1_ps(1.0f), e));
+}
+
+__attribute__((target("avx2,fma"))) static void silu_f32_avx2(float *x, int64_t n) {
+    int64_t i = 0;
+    for (; i + 8 <= n; i += 8) _mm256_storeu_ps(x + i, silu_avx2(_mm256_loadu_ps(x + i)));
+    if (i < n) silu_f32_portable(x + i, n - i);
+}
+
+/* round to nearest even in integers, as the AVX-512 variant without AVX512-BF16 */
+__attribute__((target("avx2,fma"))) static void silu_bf16_avx2(uint16_t *x, int64_t n) {
+    int64_t i = 0;
+    for (; i + 16 <= n; i += 16) {
+        __m256i h = _mm256_loadu_si256((const __m256i *)(x + i));
+        __m256i out[2];
+        for (int half = 0; half < 2; half++) {
+            __m128i part = half ? _mm256_extracti128_si256(h, 1) : _mm256_castsi256_si128(h);
+            __m256 v = _mm256_castsi256_ps(_mm256_slli_epi32(_mm256_cvtepu16_epi32(part), 16));
+            __m256i u = _mm256_castps_si256(silu_avx2(v));
+            __m256i lsb = _mm256_and_si256(_mm256_srli_epi32(u, 16), _mm256_set1_epi32(1));
+            u = _mm256_add_epi32(u, _mm256_add_epi32(lsb, _mm256_set1_epi32(0x7fff)));
+            out[half] = _mm256_srli_epi32(u, 16);
+        }
+        /* packus works within 128-bit lanes: restore the order with a 64-bit permute */
+        __m256i packed = _mm256_permute4x64_epi64(_mm256_packus_epi32(out[0], out[1]), 0xd8);
+        _mm256_storeu_si256((__m256i *)(x + i), packed);
+    }
+    if (i < n) silu_bf16_portable(x + i, n - i);
+}
+#endif
 
 /* ------------------------------------------------------------------ AVX-512 */
 #ifdef SOFTAE_X86
@@ -127,6 +183,7 @@ typedef struct {
 static variant VARIANTS[] = {
     {"portable", (silu_fn)silu_f32_portable, (silu_fn)silu_bf16_portable, 1},
 #ifdef SOFTAE_X86
+    {"avx2", (silu_fn)silu_f32_avx2, (silu_fn)silu_bf16_avx2, 0},
     {"avx512f", (silu_fn)silu_f32_avx512, (silu_fn)silu_bf16_avx512, 0},
     {"avx512bf16", (silu_fn)silu_f32_avx512, (silu_fn)silu_bf16_avx512bf16, 0},
 #endif
@@ -138,8 +195,9 @@ static void detect(void) { /* the best variant this CPU runs, in the order of VA
 #ifdef SOFTAE_X86
     __builtin_cpu_init();
     /* libgcc's feature bits include the OS check (XCR0) that the AVX-512 state is enabled */
-    VARIANTS[1].supported = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw");
-    VARIANTS[2].supported = VARIANTS[1].supported && __builtin_cpu_supports("avx512bf16");
+    VARIANTS[1].supported = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+    VARIANTS[2].supported = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw");
+    VARIANTS[3].supported = VARIANTS[2].supported && __builtin_cpu_supports("avx512bf16");
 #endif
     for (int i = 0; i < N_VARIANTS; i++)
         if (VARIANTS[i].supported) CURRENT = i;
@@ -217,7 +275,7 @@ static PyObject *use_isa(PyObject *self, PyObject *args) {
 static PyMethodDef METHODS[] = {
     {"silu_", silu_, METH_VARARGS,
      "silu_(address, n, dtype, threads): SiLU in place on n contiguous elements (dtype 0 float32, 1 bfloat16)"},
-    {"isa", isa, METH_NOARGS, "the instruction set the kernel runs on: avx512bf16, avx512f or portable"},
+    {"isa", isa, METH_NOARGS, "the instruction set the kernel runs on: avx512bf16, avx512f, avx2 or portable"},
     {"supported_isas", supported_isas, METH_NOARGS, "the instruction sets this CPU can run the kernel on"},
     {"use_isa", use_isa, METH_VARARGS, "use_isa(name): run on this instruction set (one of supported_isas())"},
     {NULL, NULL, 0, NULL},

@@ -28,8 +28,8 @@ def available() -> bool:
 
 
 def isa() -> str | None:
-    """The instruction set the kernel dispatched to on this CPU (``"avx512bf16"``, ``"avx512f"`` or
-    ``"portable"``), ``None`` without the extension."""
+    """The instruction set the kernel dispatched to on this CPU (``"avx512bf16"``, ``"avx512f"``,
+    ``"avx2"`` or ``"portable"``), ``None`` without the extension."""
     return None if _silu is None else _silu.isa()
 
 
