@@ -212,6 +212,22 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
         relu.network(x)
 
 
+def test_the_cache_key_tells_apart_machines_with_the_same_model_name():
+    """Two virtual machines both named "AMD EPYC", one with AVX-512 and one with AVX2 only, rank
+    the inference paths differently: a choice measured on one must not be read on the other, nor
+    one measured before the compiled SiLU ran on this instruction set."""
+    from torchrl_softae.modules.paths import cpu_key
+
+    avx512 = ("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 17\n"
+              "model name\t: AMD EPYC\nflags\t\t: fpu sse2 avx2 fma avx512f avx512bw avx512_bf16\n\n"
+              "processor\t: 1\nmodel name\t: something else\n")
+    avx2 = avx512.replace("model\t\t: 17", "model\t\t: 1").replace(" avx512f avx512bw avx512_bf16", "")
+    assert cpu_key(avx512, "avx512bf16") == "AMD EPYC|family 25 model 17|avx2+fma+avx512f+avx512bw+avx512_bf16|SiLU kernel avx512bf16"
+    assert cpu_key(avx2, "avx2") == "AMD EPYC|family 25 model 1|avx2+fma|SiLU kernel avx2"
+    assert cpu_key(avx2, "portable") != cpu_key(avx2, "avx2")
+    assert cpu_key("", None) == "unknown|family ? model ?|no listed ISA|SiLU kernel not built"
+
+
 @pytest.mark.skipif(not silu_kernel.available(), reason="the compiled SiLU was not built (no C compiler at install)")
 def test_compiled_silu_matches_torch_in_fp32_and_bf16_on_every_layout():
     """The kernel on every instruction set this CPU has: fp32 within a few 1e-7 relative of

@@ -4,15 +4,16 @@ convolutions through oneDNN, or batched matmuls through MKL/cuBLAS) and whether 
 Which is faster depends on the CPU, not on its vendor (AMD EPYC without AMX: oneDNN's fp32 GEMM
 beats MKL's AVX2 path; Intel with AMX: MKL's fp32 GEMM beats oneDNN's), so each choice is timed
 once on the real shapes at first use and cached for the process and on disk
-(``$TORCHRL_SOFTAE_CACHE/paths.json``, keyed by CPU model, torch version, thread count, the
-candidates and how they were timed), so a resumed run makes the same choice as the run it
-resumes. Each candidate is timed in 5 interleaved rounds of at least 2 ms and judged by its best
+(``$TORCHRL_SOFTAE_CACHE/paths.json``, keyed by CPU model and instruction sets, the compiled
+SiLU's instruction set, torch version, thread count, the candidates and how they were timed), so
+a resumed run on the same kind of machine makes the same choice as the run it resumes. Each candidate is timed in 5 interleaved rounds of at least 2 ms and judged by its best
 round: on a shared host, interference only ever adds time.
 ``SOFTAE_INFERENCE_PATH=conv|conv-fused|bmm|conv-silu-kernel|bmm-silu-kernel``
 (or ``EnsembleWorldModel.inference_path``) fixes it for reproducibility.
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import threading
@@ -21,7 +22,9 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["choose", "choices", "cache_path", "INFERENCE_PATHS"]
+from torchrl_softae.modules import silu_kernel
+
+__all__ = ["choose", "choices", "cache_path", "cpu_key", "INFERENCE_PATHS"]
 
 #: grouped 1x1 convolutions (oneDNN) with the activation as its own kernel, the same with the
 #: activation fused into the convolution (a oneDNN post-op: one pass over the layer's output
@@ -38,16 +41,41 @@ def cache_path() -> Path:
     return Path(root) / "paths.json"
 
 
-def _machine() -> str:
-    model = "unknown"
+#: the instruction sets that change which path is fastest; part of the machine's key
+_RANKING_FLAGS = ("avx2", "fma", "avx512f", "avx512bw", "avx512_bf16", "amx_bf16")
+
+
+def cpu_key(cpuinfo: str, silu_isa: str | None) -> str:
+    """The CPU as the cache key names it, from ``/proc/cpuinfo``'s text. The model name alone is
+    not enough: virtual machines of two kinds both report "AMD EPYC", one with AVX-512 and one
+    with AVX2 only, and a choice measured on one can be 1.8x slower on the other. So the key also
+    has the family, model and the instruction sets of :data:`_RANKING_FLAGS`, and which
+    instruction set the compiled SiLU runs on (``silu_isa``: a rebuilt kernel may rank
+    differently)."""
+    info: dict[str, str] = {}
+    for line in cpuinfo.splitlines():
+        if not line.strip():
+            break  # the first processor's block describes them all
+        name, _, value = line.partition(":")
+        info.setdefault(name.strip(), value.strip())
+    flags = set(info.get("flags", "").split())
+    isa = "+".join(f for f in _RANKING_FLAGS if f in flags) or "no listed ISA"
+    return (f"{info.get('model name', 'unknown')}|family {info.get('cpu family', '?')} model "
+            f"{info.get('model', '?')}|{isa}|SiLU kernel {silu_isa or 'not built'}")
+
+
+@functools.lru_cache(maxsize=1)
+def _cpu() -> str:
     try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
+        with open("/proc/cpuinfo") as f:
+            text = f.read()
     except OSError:
-        pass
-    return f"{model}|torch {torch.__version__}|{torch.get_num_threads()} threads"
+        text = ""
+    return cpu_key(text, silu_kernel.isa())
+
+
+def _machine() -> str:
+    return f"{_cpu()}|torch {torch.__version__}|{torch.get_num_threads()} threads"
 
 
 #: interleaved rounds per candidate; each round repeats a call until it has run this long
