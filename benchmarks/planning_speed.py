@@ -648,7 +648,7 @@ def main():
     print(f"# planning_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; allocator: {allocator}")
     print(f"compiled SiLU kernel: {silu_kernel.isa() or 'not built (torch SiLU only)'}; one-pass moments kernel: "
-          f"{'yes' if moments_kernel.available() else 'no (not built, or no AVX-512: torch ops)'}", flush=True)
+          f"{moments_kernel.isa() or 'no (not built, or no AVX2: torch ops)'}", flush=True)
     if "bf16" not in precisions:
         print("bf16 contenders skipped: this CPU has no native bf16 (AMX-BF16, AVX512-BF16); precision='auto' plans "
               "in fp32 here and no bf16 target applies (--force-bf16 times torch's emulation anyway)", flush=True)
@@ -660,6 +660,7 @@ def main():
         have_mbrl = False
         print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} ({MBRL_INSTALL})")
     results = {"cpu": cpu, "silu_kernel_isa": silu_kernel.isa(), "moments_kernel": moments_kernel.available(),
+               "moments_kernel_isa": moments_kernel.isa(),
                "threads": args.threads, "allocator": allocator, "precisions": list(precisions),
                "repeats": repeats, "rows": []}
     timed = []  # per shape: what the table needs once every round (and every peak) is measured

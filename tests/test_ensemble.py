@@ -260,13 +260,29 @@ def test_compiled_silu_matches_torch_in_fp32_and_bf16_on_every_layout():
         silu_kernel.use_isa("sse9")
 
 
-@pytest.mark.skipif(not moments_kernel.available(), reason="the moments kernel was not built or this CPU lacks AVX-512")
-def test_fused_moments_match_the_torch_ops(monkeypatch):
-    """``predict_moments`` through the one-pass kernel and through torch ops: the same mu, sigma,
-    sampled member's mean and aleatoric std to fp32 rounding, in fp32 and bf16, on the convolution
-    (strided output) and matmul (contiguous) paths, with and without trajectory sampling and the
-    log-variance head, for a deterministic model too; the kernel's own results are bit-for-bit
-    reproducible, also on 2 threads (rows split between them)."""
+@pytest.mark.skipif(not moments_kernel.available(), reason="the moments kernel was not built or this CPU lacks AVX2")
+@pytest.mark.parametrize("isa", ["avx2", "avx512"])
+def test_fused_moments_match_the_torch_ops(monkeypatch, isa):
+    """``predict_moments`` through the one-pass kernel (on each instruction set this CPU runs it
+    on) and through torch ops: the same mu, sigma, sampled member's mean and aleatoric std to fp32
+    rounding, in fp32 and bf16, on the convolution (strided output) and matmul (contiguous) paths,
+    with and without trajectory sampling and the log-variance head, for a deterministic model too;
+    the kernel's own results are bit-for-bit reproducible, also on 2 threads (rows split between
+    them)."""
+    if isa not in moments_kernel.supported_isas():
+        pytest.skip(f"this CPU runs the moments kernel on {moments_kernel.supported_isas()}, not {isa}")
+    best = moments_kernel.isa()
+    assert best == moments_kernel.supported_isas()[-1]
+    moments_kernel.use_isa(isa)
+    try:
+        _fused_moments_match_the_torch_ops(monkeypatch)
+    finally:
+        moments_kernel.use_isa(best)
+    with pytest.raises(ValueError, match="'sse9' is not one of this CPU's"):
+        moments_kernel.use_isa("sse9")
+
+
+def _fused_moments_match_the_torch_ops(monkeypatch):
     calls = []
     kernel = moments_kernel.ensemble_moments
     monkeypatch.setattr(moments_kernel, "ensemble_moments", lambda *a, **k: (calls.append(1), kernel(*a, **k))[1])
@@ -310,7 +326,7 @@ def test_fused_moments_match_the_torch_ops(monkeypatch):
 
 
 @pytest.mark.skipif(not (silu_kernel.available() and moments_kernel.available()),
-                    reason="the compiled kernels were not built here (no compiler or no AVX-512)")
+                    reason="the compiled kernels were not built here (no compiler or no AVX2)")
 def test_compiled_kernels_show_in_torch_profiler_tables():
     """The C kernels run outside torch's dispatcher; while a profiler records they appear under
     their own names (so a profile's shares are of the whole op time), and outside one the result

@@ -16,13 +16,15 @@
  *
  * The arithmetic is the torch ops' in the same order (members summed in order, then scaled by
  * 1/L; squared deviations likewise), with separate multiplies and adds, so results agree with
- * them to rounding. AVX-512 (F, BW, VL) only, checked at run time: elsewhere supported() is 0 and
- * the ensemble runs the torch ops. Built as the optional extension torchrl_softae.modules._moments
+ * them to rounding. AVX-512 (F, BW, VL), else AVX2 (eight dimensions per vector, no FMA, so the
+ * same separate rounding), chosen at run time: elsewhere supported() is 0 and the ensemble runs the
+ * torch ops. Built as the optional extension torchrl_softae.modules._moments
  * (pyproject.toml); OpenMP threads are torch's own (see silu.c).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <stdint.h>
+#include <string.h>
 
 enum { DTYPE_FLOAT32 = 0, DTYPE_BFLOAT16 = 1 };
 
@@ -88,16 +90,92 @@ __attribute__((target("avx512f,avx512bw,avx512vl"))) static void moments_row_avx
     }
 }
 
-static int cpu_check(void) {
-    __builtin_cpu_init();
-    /* libgcc's feature bits include the OS check (XCR0) that the AVX-512 state is enabled */
-    return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512vl");
+/* ------------------------------------------------------------------ AVX2
+ * The same with eight state dimensions per vector. AVX2 has no 16-bit masked load, so a tail
+ * shorter than a vector goes through a zero-filled copy; AVX (and so AVX2) masks fp32 loads and
+ * stores. Compiled without FMA: the multiplies and adds round separately, as the torch ops do. */
+
+__attribute__((target("avx2"))) static inline __m256i tail_mask_avx2(int64_t count) {
+    const __m256i lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    return _mm256_cmpgt_epi32(_mm256_set1_epi32((int)count), lanes);
 }
-#else
-static int cpu_check(void) { return 0; }
+
+__attribute__((target("avx2"))) static inline __m256 load_avx2(const moments_args *a, int64_t offset, int64_t count,
+                                                               __m256i mask) {
+    if (a->dtype == DTYPE_FLOAT32) return _mm256_maskload_ps((const float *)a->y + offset, mask);
+    const uint16_t *src = (const uint16_t *)a->y + offset;
+    __m128i h;
+    if (count >= 8) {
+        h = _mm_loadu_si128((const __m128i *)src);
+    } else {
+        uint16_t buf[8] = {0};
+        for (int64_t i = 0; i < count; i++) buf[i] = src[i];
+        h = _mm_loadu_si128((const __m128i *)buf);
+    }
+    return _mm256_castsi256_ps(_mm256_slli_epi32(_mm256_cvtepu16_epi32(h), 16));
+}
+
+__attribute__((target("avx2"))) static void moments_row_avx2(const moments_args *a, int64_t n) {
+    const int64_t L = a->L, d = a->d, row = n * a->sn;
+    const __m256 inv_l = _mm256_set1_ps(1.0f / (float)L), inv_dof = _mm256_set1_ps(1.0f / (float)(L > 1 ? L - 1 : 1));
+    __m256 m[MAX_VECTOR_MEMBERS];
+    for (int64_t j = 0; j < d; j += 8) {
+        const int64_t count = d - j >= 8 ? 8 : d - j;
+        const __m256i k = tail_mask_avx2(count);
+        const __m256 base = _mm256_add_ps(_mm256_maskload_ps(a->state + n * d + j, k), _mm256_maskload_ps(a->loc + j, k));
+        const __m256 sc = _mm256_maskload_ps(a->scale + j, k);
+        __m256 sum = _mm256_setzero_ps(), ss = _mm256_setzero_ps();
+        for (int64_t l = 0; l < L; l++) {
+            m[l] = _mm256_add_ps(base, _mm256_mul_ps(sc, load_avx2(a, l * a->sm + row + j, count, k)));
+            sum = _mm256_add_ps(sum, m[l]);
+        }
+        const __m256 mean = _mm256_mul_ps(sum, inv_l);
+        for (int64_t l = 0; l < L; l++) {
+            const __m256 c = _mm256_sub_ps(m[l], mean);
+            ss = _mm256_add_ps(ss, _mm256_mul_ps(c, c));
+        }
+        _mm256_maskstore_ps(a->mu + n * d + j, k, mean);
+        _mm256_maskstore_ps(a->sigma + n * d + j, k, _mm256_sqrt_ps(_mm256_mul_ps(ss, inv_dof)));
+        if (a->member != NULL) {
+            const int64_t l = a->member[n];
+            _mm256_maskstore_ps(a->picked + n * d + j, k, m[l]);
+            if (a->logvar_offset >= 0)
+                _mm256_maskstore_ps(a->picked_logvar + n * d + j, k,
+                                    load_avx2(a, l * a->sm + row + a->logvar_offset + j, count, k));
+        }
+    }
+}
 #endif
 
-static int CPU_SUPPORTED = 0; /* checked once, at import */
+/* ------------------------------------------------------------------ dispatch */
+typedef void (*row_fn)(const moments_args *, int64_t);
+typedef struct {
+    const char *name;
+    row_fn row;
+    int supported;
+} variant;
+
+static variant VARIANTS[] = {
+#ifdef SOFTAE_X86
+    {"avx2", moments_row_avx2, 0},
+    {"avx512", moments_row_avx512, 0},
+#endif
+    {NULL, NULL, 0},
+};
+#define N_VARIANTS ((int)(sizeof(VARIANTS) / sizeof(VARIANTS[0])) - 1)
+static int CURRENT = -1; /* the variant in use; -1: this CPU runs none */
+
+static void detect(void) { /* the best variant this CPU runs, in the order of VARIANTS */
+#ifdef SOFTAE_X86
+    __builtin_cpu_init();
+    /* libgcc's feature bits include the OS check (XCR0) that the AVX state is enabled */
+    VARIANTS[0].supported = __builtin_cpu_supports("avx2");
+    VARIANTS[1].supported = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw")
+                            && __builtin_cpu_supports("avx512vl");
+#endif
+    for (int i = 0; i < N_VARIANTS; i++)
+        if (VARIANTS[i].supported) CURRENT = i;
+}
 
 /* below this many elements one thread does it all (waking the other costs more) */
 #define MIN_PARALLEL_ELEMENTS ((int64_t)32768)
@@ -114,8 +192,8 @@ static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
         PyErr_Format(PyExc_ValueError, "ensemble_moments: dtype code %d, expected 0 (float32) or 1 (bfloat16)", dtype);
         return NULL;
     }
-    if (!CPU_SUPPORTED) {
-        PyErr_SetString(PyExc_RuntimeError, "ensemble_moments: this CPU lacks AVX-512 (F, BW, VL)");
+    if (CURRENT < 0) {
+        PyErr_SetString(PyExc_RuntimeError, "ensemble_moments: this CPU lacks AVX2");
         return NULL;
     }
     if (L < 1 || L > MAX_VECTOR_MEMBERS || N < 0 || d < 1 || !y || !state || !loc || !scale || !mu || !sigma || (member && !picked)
@@ -130,26 +208,59 @@ static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
                       (float *)(uintptr_t)picked, (float *)(uintptr_t)picked_logvar};
     if (threads < 1) threads = 1;
     const int parallel = threads > 1 && N * L * d >= MIN_PARALLEL_ELEMENTS;
-#ifdef SOFTAE_X86
+    const row_fn row = VARIANTS[CURRENT].row;
     Py_BEGIN_ALLOW_THREADS
 #pragma omp parallel for num_threads(threads) schedule(static) if (parallel)
-    for (int64_t n = 0; n < (int64_t)N; n++) moments_row_avx512(&a, n);
+    for (int64_t n = 0; n < (int64_t)N; n++) row(&a, n);
     Py_END_ALLOW_THREADS
-#else
-    (void)a;
-    (void)parallel;
-#endif
     Py_RETURN_NONE;
 }
 
 static PyObject *supported(PyObject *self, PyObject *unused) {
     (void)self;
     (void)unused;
-    return PyBool_FromLong(CPU_SUPPORTED);
+    return PyBool_FromLong(CURRENT >= 0);
+}
+
+static PyObject *isa(PyObject *self, PyObject *unused) {
+    (void)self;
+    (void)unused;
+    if (CURRENT < 0) Py_RETURN_NONE;
+    return PyUnicode_FromString(VARIANTS[CURRENT].name);
+}
+
+static PyObject *supported_isas(PyObject *self, PyObject *unused) {
+    (void)self;
+    (void)unused;
+    PyObject *out = PyList_New(0);
+    for (int i = 0; out != NULL && i < N_VARIANTS; i++) {
+        if (!VARIANTS[i].supported) continue;
+        PyObject *name = PyUnicode_FromString(VARIANTS[i].name);
+        if (name == NULL || PyList_Append(out, name) < 0) Py_CLEAR(out);
+        Py_XDECREF(name);
+    }
+    return out;
+}
+
+static PyObject *use_isa(PyObject *self, PyObject *args) {
+    const char *name;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "s", &name)) return NULL;
+    for (int i = 0; i < N_VARIANTS; i++) {
+        if (strcmp(VARIANTS[i].name, name) == 0 && VARIANTS[i].supported) {
+            CURRENT = i;
+            Py_RETURN_NONE;
+        }
+    }
+    PyErr_Format(PyExc_ValueError, "use_isa: %s is not an instruction set this CPU runs the kernel on", name);
+    return NULL;
 }
 
 static PyMethodDef METHODS[] = {
-    {"supported", supported, METH_NOARGS, "whether this CPU runs the kernel (AVX-512 F, BW and VL)"},
+    {"supported", supported, METH_NOARGS, "whether this CPU runs the kernel (AVX2, or AVX-512 F, BW and VL)"},
+    {"isa", isa, METH_NOARGS, "the instruction set the kernel runs on: avx512 or avx2 (None: neither)"},
+    {"supported_isas", supported_isas, METH_NOARGS, "the instruction sets this CPU can run the kernel on"},
+    {"use_isa", use_isa, METH_VARARGS, "use_isa(name): run on this instruction set (one of supported_isas())"},
     {"ensemble_moments", ensemble_moments, METH_VARARGS,
      "ensemble_moments(y, member_stride, row_stride, dtype, L, N, d, logvar_offset, state, loc, scale, member, "
      "mu, sigma, picked, picked_logvar, threads): mu and sigma (and a picked member's mean and raw "
@@ -161,7 +272,7 @@ static struct PyModuleDef MODULE = {PyModuleDef_HEAD_INIT, "_moments", "ensemble
                                     -1, METHODS, NULL, NULL, NULL, NULL};
 
 PyMODINIT_FUNC PyInit__moments(void) {
-    CPU_SUPPORTED = cpu_check();
+    detect();
     PyObject *module = PyModule_Create(&MODULE);
     if (module != NULL && PyModule_AddIntConstant(module, "MAX_MEMBERS", MAX_VECTOR_MEMBERS) < 0) Py_CLEAR(module);
     return module;

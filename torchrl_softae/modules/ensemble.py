@@ -705,7 +705,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
             without ``member_index`` the root mean square over the members (``None`` unless
             ``with_aleatoric``).
 
-        At inference on a CPU with AVX-512 this is one pass over the network's output, in its
+        At inference on a CPU with AVX2 or AVX-512 this is one pass over the network's output, in its
         dtype, where the member means are never materialized (``fused_moments``,
         :mod:`.moments_kernel`); elsewhere the torch ops of :meth:`predict_members`. Both give the
         same values to fp32 rounding (``test_fused_moments_match_the_torch_ops``).

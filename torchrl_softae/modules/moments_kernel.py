@@ -17,20 +17,38 @@ try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenM
     from torchrl_softae.modules import _moments
 except ImportError:
     _moments = None
-if _moments is not None and not _moments.supported():  # built, but this CPU lacks AVX-512
+if _moments is not None and not _moments.supported():  # built, but this CPU lacks AVX2
     _moments = None
 
 #: members the kernel keeps in registers (``MAX_VECTOR_MEMBERS`` in moments.c); 0 without the kernel
 MAX_MEMBERS = 0 if _moments is None else _moments.MAX_MEMBERS
 
-__all__ = ["MAX_MEMBERS", "available", "applies", "ensemble_moments"]
+__all__ = ["MAX_MEMBERS", "available", "applies", "ensemble_moments", "isa", "supported_isas", "use_isa"]
 
 _DTYPE_CODES = {torch.float32: 0, torch.bfloat16: 1}
 
 
 def available() -> bool:
-    """Whether the extension was built and runs on this CPU (AVX-512 F, BW and VL)."""
+    """Whether the extension was built and runs on this CPU (AVX2, or AVX-512 F, BW and VL)."""
     return _moments is not None
+
+
+def isa() -> str | None:
+    """The instruction set the kernel runs on (``"avx512"`` or ``"avx2"``), ``None`` without it."""
+    return None if _moments is None else _moments.isa()
+
+
+def supported_isas() -> list[str]:
+    """The instruction sets this CPU can run the kernel on (empty without it)."""
+    return [] if _moments is None else _moments.supported_isas()
+
+
+def use_isa(name: str) -> None:
+    """Run the kernel on ``name`` (one of :func:`supported_isas`; the best is the default): for
+    tests and measurements."""
+    if name not in supported_isas():
+        raise ValueError(f"use_isa: {name!r} is not one of this CPU's {supported_isas()}")
+    _moments.use_isa(name)
 
 
 def applies(output: torch.Tensor) -> bool:
