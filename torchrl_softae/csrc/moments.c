@@ -24,7 +24,6 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <stdint.h>
-#include <string.h>
 
 enum { DTYPE_FLOAT32 = 0, DTYPE_BFLOAT16 = 1 };
 
@@ -222,45 +221,11 @@ static PyObject *supported(PyObject *self, PyObject *unused) {
     return PyBool_FromLong(CURRENT >= 0);
 }
 
-static PyObject *isa(PyObject *self, PyObject *unused) {
-    (void)self;
-    (void)unused;
-    if (CURRENT < 0) Py_RETURN_NONE;
-    return PyUnicode_FromString(VARIANTS[CURRENT].name);
-}
-
-static PyObject *supported_isas(PyObject *self, PyObject *unused) {
-    (void)self;
-    (void)unused;
-    PyObject *out = PyList_New(0);
-    for (int i = 0; out != NULL && i < N_VARIANTS; i++) {
-        if (!VARIANTS[i].supported) continue;
-        PyObject *name = PyUnicode_FromString(VARIANTS[i].name);
-        if (name == NULL || PyList_Append(out, name) < 0) Py_CLEAR(out);
-        Py_XDECREF(name);
-    }
-    return out;
-}
-
-static PyObject *use_isa(PyObject *self, PyObject *args) {
-    const char *name;
-    (void)self;
-    if (!PyArg_ParseTuple(args, "s", &name)) return NULL;
-    for (int i = 0; i < N_VARIANTS; i++) {
-        if (strcmp(VARIANTS[i].name, name) == 0 && VARIANTS[i].supported) {
-            CURRENT = i;
-            Py_RETURN_NONE;
-        }
-    }
-    PyErr_Format(PyExc_ValueError, "use_isa: %s is not an instruction set this CPU runs the kernel on", name);
-    return NULL;
-}
+#include "isa_variants.h"
 
 static PyMethodDef METHODS[] = {
     {"supported", supported, METH_NOARGS, "whether this CPU runs the kernel (AVX2, or AVX-512 F, BW and VL)"},
-    {"isa", isa, METH_NOARGS, "the instruction set the kernel runs on: avx512 or avx2 (None: neither)"},
-    {"supported_isas", supported_isas, METH_NOARGS, "the instruction sets this CPU can run the kernel on"},
-    {"use_isa", use_isa, METH_VARARGS, "use_isa(name): run on this instruction set (one of supported_isas())"},
+    SOFTAE_ISA_METHODS,
     {"ensemble_moments", ensemble_moments, METH_VARARGS,
      "ensemble_moments(y, member_stride, row_stride, dtype, L, N, d, logvar_offset, state, loc, scale, member, "
      "mu, sigma, picked, picked_logvar, threads): mu and sigma (and a picked member's mean and raw "

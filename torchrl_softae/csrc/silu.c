@@ -239,45 +239,12 @@ static PyObject *silu_(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
-static PyObject *isa(PyObject *self, PyObject *unused) {
-    (void)self;
-    (void)unused;
-    return PyUnicode_FromString(VARIANTS[CURRENT].name);
-}
-
-static PyObject *supported_isas(PyObject *self, PyObject *unused) {
-    (void)self;
-    (void)unused;
-    PyObject *out = PyList_New(0);
-    for (int i = 0; out != NULL && i < N_VARIANTS; i++) {
-        if (!VARIANTS[i].supported) continue;
-        PyObject *name = PyUnicode_FromString(VARIANTS[i].name);
-        if (name == NULL || PyList_Append(out, name) < 0) Py_CLEAR(out);
-        Py_XDECREF(name);
-    }
-    return out;
-}
-
-static PyObject *use_isa(PyObject *self, PyObject *args) {
-    const char *name;
-    (void)self;
-    if (!PyArg_ParseTuple(args, "s", &name)) return NULL;
-    for (int i = 0; i < N_VARIANTS; i++) {
-        if (strcmp(VARIANTS[i].name, name) == 0 && VARIANTS[i].supported) {
-            CURRENT = i;
-            Py_RETURN_NONE;
-        }
-    }
-    PyErr_Format(PyExc_ValueError, "use_isa: %s is not an instruction set this CPU runs the kernel on", name);
-    return NULL;
-}
+#include "isa_variants.h"
 
 static PyMethodDef METHODS[] = {
     {"silu_", silu_, METH_VARARGS,
      "silu_(address, n, dtype, threads): SiLU in place on n contiguous elements (dtype 0 float32, 1 bfloat16)"},
-    {"isa", isa, METH_NOARGS, "the instruction set the kernel runs on: avx512bf16, avx512f, avx2 or portable"},
-    {"supported_isas", supported_isas, METH_NOARGS, "the instruction sets this CPU can run the kernel on"},
-    {"use_isa", use_isa, METH_VARARGS, "use_isa(name): run on this instruction set (one of supported_isas())"},
+    SOFTAE_ISA_METHODS,
     {NULL, NULL, 0, NULL},
 };
 

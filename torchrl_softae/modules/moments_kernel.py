@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import torch
 
+from torchrl_softae.modules._instruction_sets import instruction_set_functions
 from torchrl_softae.modules._profiling import seen_by_profiler
 
 try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
@@ -33,22 +34,9 @@ def available() -> bool:
     return _moments is not None
 
 
-def isa() -> str | None:
-    """The instruction set the kernel runs on (``"avx512"`` or ``"avx2"``), ``None`` without it."""
-    return None if _moments is None else _moments.isa()
-
-
-def supported_isas() -> list[str]:
-    """The instruction sets this CPU can run the kernel on (empty without it)."""
-    return [] if _moments is None else _moments.supported_isas()
-
-
-def use_isa(name: str) -> None:
-    """Run the kernel on ``name`` (one of :func:`supported_isas`; the best is the default): for
-    tests and measurements."""
-    if name not in supported_isas():
-        raise ValueError(f"use_isa: {name!r} is not one of this CPU's {supported_isas()}")
-    _moments.use_isa(name)
+#: the instruction set the kernel runs on (``"avx512"`` or ``"avx2"``), the ones this CPU runs it
+#: on, and a switch between them (for tests)
+isa, supported_isas, use_isa = instruction_set_functions(_moments)
 
 
 def applies(output: torch.Tensor) -> bool:

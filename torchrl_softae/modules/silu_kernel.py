@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 from torch.nn import functional as F
 
+from torchrl_softae.modules._instruction_sets import instruction_set_functions
 from torchrl_softae.modules._profiling import seen_by_profiler
 
 try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
@@ -27,23 +28,9 @@ def available() -> bool:
     return _silu is not None
 
 
-def isa() -> str | None:
-    """The instruction set the kernel dispatched to on this CPU (``"avx512bf16"``, ``"avx512f"``,
-    ``"avx2"`` or ``"portable"``), ``None`` without the extension."""
-    return None if _silu is None else _silu.isa()
-
-
-def supported_isas() -> list[str]:
-    """The instruction sets this CPU can run the kernel on (empty without the extension)."""
-    return [] if _silu is None else _silu.supported_isas()
-
-
-def use_isa(name: str) -> None:
-    """Run the kernel on ``name`` (one of :func:`supported_isas`; the best is the default): for
-    tests and measurements."""
-    if name not in supported_isas():
-        raise ValueError(f"use_isa: {name!r} is not one of this CPU's {supported_isas()}")
-    _silu.use_isa(name)
+#: the instruction set the kernel runs on (``"avx512bf16"``, ``"avx512f"``, ``"avx2"`` or
+#: ``"portable"``), the ones this CPU runs it on, and a switch between them (for tests)
+isa, supported_isas, use_isa = instruction_set_functions(_silu)
 
 
 def _dense(x: torch.Tensor) -> bool:
