@@ -33,7 +33,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from planning_speed import cpu_description  # noqa: E402
 
-from torchrl_softae.modules import paths  # noqa: E402
+from torchrl_softae.modules import moments_kernel, paths, silu_kernel  # noqa: E402
 from torchrl_softae.pipeline.data import COVERAGE_BINS  # noqa: E402
 from torchrl_softae.pipeline.plots import method_color  # noqa: E402
 
@@ -127,11 +127,13 @@ def run_one(env: str, method: str, seed: int, budgets: list[int], any_episodes: 
                              "min_error_mm": [m["min_error_mm"] for m in r["metrics"]]} for name, r in tasks.items()},
             "config": cfg.to_dict(),
             # With precision=auto and measured kernel choices a seed's actions depend on the
-            # machine's arithmetic (bf16 or fp32, which GEMM, chosen anew where the cache is new):
-            # the same seed with other choices is another run. The choices are this process's (a
-            # resumed run's earlier episodes may have planned with others).
+            # machine's arithmetic (bf16 or fp32, which GEMM, chosen anew where the cache is new,
+            # which instruction set the compiled kernels run on): the same seed with other choices
+            # is another run. The choices are this process's (a resumed run's earlier episodes may
+            # have planned with others).
             "machine": {**cpu_description(), "torch": torch.__version__, "threads": torch.get_num_threads(),
-                        "kernel_choices": paths.choices()},
+                        "kernel_choices": paths.choices(), "silu_kernel_isa": silu_kernel.isa(),
+                        "moments_kernel_isa": moments_kernel.isa()},
             "code": code_version(),
             "tip_histogram": tip_histogram(env, run_dir, cfg.heldout_size),
         }
