@@ -145,14 +145,15 @@ def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
             ax.scatter(n, y, marker="D", s=40, facecolor="white", edgecolor="tab:blue", zorder=3,
                        label="its network calls alone" if y == 0 else None)
         ax.scatter(m, y, s=55, color="tab:green" if met else "tab:red", zorder=4)
-        ax.annotate(f"{value:.0f} ms" if "ms" in name else f"{value:.2f}x", (m, y), xytext=(-6, 7),
-                    textcoords="offset points", ha="right", fontsize=7)
+        ax.annotate(f"{value:.0f} ms" if "ms" in name else f"{value:.2f}x", (m, y), xytext=(-5, 6),
+                    textcoords="offset points", ha="right", va="bottom", fontsize=7, zorder=5,
+                    bbox={"boxstyle": "square,pad=0.1", "facecolor": "white", "edgecolor": "none"})
     ax.scatter([], [], s=55, color="tab:green", label="measured (median), met")
     ax.scatter([], [], s=55, color="tab:red", label="measured (median), not met")
     ax.axvline(1.0, color="k", lw=1, ls="--")
     ax.set_yticks(range(len(rows)))
     ax.set_yticklabels([f"{name} {op} {threshold:g}\n{where}" for name, op, threshold, where, *_ in rows], fontsize=7)
-    ax.invert_yaxis()
+    ax.set_ylim(len(rows) - 0.5, -0.75)  # top to bottom, with room above the first row's label
     ax.set_xscale("log")
     lo, hi = ax.get_xlim()
     lo, hi = lo / 1.12, hi * 1.03  # room for the value labels left of the leftmost points
