@@ -212,42 +212,6 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
         relu.network(x)
 
 
-def test_large_calls_run_in_measured_passes_of_rows_with_the_same_results(tmp_path, monkeypatch):
-    """Above 2048 rows the network runs in passes of at most the measured number of rows (one
-    pass is a candidate too), chosen once and cached like the inference path; the output is the
-    one-pass output, in the same (L, N, out) layout, on every path; the pass size can be fixed
-    (0: one pass) and a bad value is refused in one line."""
-    from torchrl_softae.modules import paths
-
-    monkeypatch.setenv("TORCHRL_SOFTAE_CACHE", str(tmp_path))
-    monkeypatch.setattr(paths, "_MEMORY", {})
-    torch.manual_seed(0)
-    model = EnsembleWorldModel(6, 2, num_cells=32, depth=2).eval()
-    x = torch.randn(3001, 8)
-    with torch.no_grad():
-        assert model._tile_rows(x[:2048], torch.float32, None, "bmm") == 2048  # small calls: no choice
-        assert paths.choices() == {}
-        tile = model._tile_rows(x, torch.float32, None, "bmm")
-        (key, choice), = paths.choices().items()
-        assert key.startswith("tile rows|ensemble 5|") and "rows 4096" in key and "path bmm" in key
-        assert choice in ("whole", "1024", "2048") and tile == (3001 if choice == "whole" else int(choice))
-        for path in model.available_inference_paths():
-            model.inference_path = path
-            model.inference_tile_rows = 0
-            whole = model.network_output(x, True)
-            for rows in (1000, 2048):  # 4 passes of 750-751 rows, 2 of 1500-1501
-                model.inference_tile_rows = rows
-                tiled = model.network_output(x, True)
-                assert tiled.shape == whole.shape == (5, 3001, 12) and tiled.stride() == (12, 60, 1)
-                torch.testing.assert_close(tiled, whole, rtol=1e-5, atol=1e-6, msg=path)
-        model.inference_tile_rows = "auto"
-        monkeypatch.setenv("SOFTAE_INFERENCE_TILE_ROWS", "512")
-        assert model._tile_rows(x, torch.float32, None, "bmm") == 512
-        monkeypatch.setenv("SOFTAE_INFERENCE_TILE_ROWS", "-3")
-        with pytest.raises(ValueError, match=r"inference_tile_rows='-3': expected 'auto', 0 \(never split\) or a row count"):
-            model.network_output(x, True)
-
-
 def test_the_cache_key_tells_apart_machines_with_the_same_model_name():
     """Two virtual machines both named "AMD EPYC", one with AVX-512 and one with AVX2 only, rank
     the inference paths differently: a choice measured on one must not be read on the other, nor

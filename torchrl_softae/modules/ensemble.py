@@ -84,10 +84,6 @@ def _watch_optimizer_steps(model) -> None:
 
 #: distinct row counts per model whose convolution weights are packed exactly (see ``_pack_rows``)
 _EXACT_PACKS = 8
-#: calls of at most this many rows go through the network in one pass (no measured choice)
-_TILE_MIN_ROWS = 2048
-#: the pass sizes the measured choice tries besides one pass
-_TILE_CANDIDATES = (1024, 2048)
 
 
 def _row_bucket(rows: int) -> int:
@@ -404,13 +400,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
             return self.layers[last](x)
         lowp = self.planning_dtype or torch.float32
         cols = None if (with_logvar or not self.probabilistic) else d  # both heads in one matmul
-        if x.dim() != 2:
-            return self._run_path("bmm", x, lowp, cols)
-        path = self._inference_path(x, lowp, cols)
-        tile = self._tile_rows(x, lowp, cols, path)
-        if tile >= x.shape[0]:
-            return self._run_path(path, x, lowp, cols)
-        return self._run_tiled(path, x, lowp, cols, tile)
+        path = self._inference_path(x, lowp, cols) if x.dim() == 2 else "bmm"
+        return self._run_path(path, x, lowp, cols)
 
     #: ``"auto"`` (measured once per device, dtype and row count; see :mod:`torchrl_softae.modules.paths`)
     #: or one of :data:`~torchrl_softae.modules.paths.INFERENCE_PATHS`; the environment variable
@@ -451,67 +442,6 @@ class EnsembleWorldModel(TensorDictModuleBase):
                       if p != "conv-fused" or (self._fused_activation() is not None and _onednn_runs(dtype))}
         self._path_memo[memo] = paths.choose(key, candidates)
         return self._path_memo[memo]
-
-    #: ``"auto"`` (measured once per dtype, row count bucket and path, for calls of more than
-    #: :data:`_TILE_MIN_ROWS` rows), or the most rows one pass through the network takes (``0``:
-    #: never split); the environment variable ``SOFTAE_INFERENCE_TILE_ROWS`` sets the default
-    inference_tile_rows: int | str = "auto"
-
-    def _tile_rows(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None, path: str) -> int:
-        """The most rows of a shared ``(N, in)`` input that go through the network in one pass.
-
-        Why: a hidden layer's output at N rows is ``N * L * h`` values (84 MiB in fp32 at the
-        16480 rows of 8 ten-particle plans as one batch), far beyond the caches, so each layer
-        streams its input and output through memory. Passes of a few thousand rows keep them in
-        cache (``benchmarks/tile_rows_speed.py`` measures it). The rows are independent, so the
-        results are the same up to the kernels' last bits. Calls of at most :data:`_TILE_MIN_ROWS`
-        rows take one pass; above, the pass size is measured at first use among one pass and
-        :data:`_TILE_CANDIDATES` (:func:`paths.choose`, cached like the inference path).
-        """
-        n = x.shape[0]
-        if x.device.type != "cpu":  # a CPU cache matter; accelerators get one pass
-            return n
-        forced = self.inference_tile_rows
-        if forced == "auto":
-            forced = os.environ.get("SOFTAE_INFERENCE_TILE_ROWS", "auto")
-        if forced != "auto":
-            try:
-                rows = int(forced)
-            except ValueError:
-                rows = -1
-            if rows < 0:
-                raise ValueError(f"inference_tile_rows={forced!r}: expected 'auto', 0 (never split) or a row count")
-            return n if rows == 0 else rows
-        if n <= _TILE_MIN_ROWS:
-            return n
-        rows = _row_bucket(n)
-        memo = ("tile", dtype, rows, cols, path, torch.get_num_threads())
-        if memo in self._path_memo:
-            return min(self._path_memo[memo], n)
-        shapes = ",".join(f"{layer.in_features}x{layer.out_features}" for layer in self.layers)
-        key = f"tile rows|ensemble {self.ensemble_size}|{shapes}|{dtype}|rows {rows}|cols {cols}|path {path}"
-        probe = torch.randn(rows, x.shape[1], dtype=x.dtype, generator=torch.Generator().manual_seed(0))
-        candidates = {"whole": lambda: self._run_path(path, probe, dtype, cols)}
-        for tile in _TILE_CANDIDATES:
-            if tile < rows:
-                candidates[str(tile)] = lambda tile=tile: self._run_tiled(path, probe, dtype, cols, tile)
-        choice = paths.choose(key, candidates)
-        self._path_memo[memo] = rows if choice == "whole" else int(choice)
-        return min(self._path_memo[memo], n)
-
-    def _run_tiled(self, path: str, x: torch.Tensor, dtype: torch.dtype, cols: int | None, tile: int) -> torch.Tensor:
-        """The network on ``(N, in)`` in passes of at most ``tile`` rows (as equal as they divide,
-        so a plan's calls see two row counts at most), into one ``(L, N, out)`` output, a view of
-        an ``(N, L, out)`` buffer as the conv path returns."""
-        n = x.shape[0]
-        chunks = x.tensor_split(-(-n // tile))
-        outs = [self._run_path(path, chunk, dtype, cols) for chunk in chunks]
-        out = torch.empty(n, self.ensemble_size, outs[0].shape[-1], dtype=outs[0].dtype, device=x.device).transpose(0, 1)
-        start = 0
-        for part in outs:
-            out[:, start:start + part.shape[1]].copy_(part)
-            start += part.shape[1]
-        return out
 
     def _run_path(self, path: str, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
         """The network on a shared ``(N, in)`` input (or ``bmm`` on ``(L, N, in)``) by inference ``path``."""
