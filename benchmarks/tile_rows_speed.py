@@ -1,18 +1,20 @@
-"""One network call in passes of rows against one pass, at the row counts planning makes.
+"""One network call in passes of rows against one pass, at the row counts planning makes: an idea
+tried and not used (README, "Tried and not used").
 
-    python benchmarks/tile_rows_speed.py                  # the arm's network (58, 12), 11 rounds
-    python benchmarks/tile_rows_speed.py --rounds 5 --threads 1
+    python benchmarks/tile_rows_speed.py                      # freed memory kept, as softae runs
+    python benchmarks/tile_rows_speed.py --allocator default  # glibc's malloc as it comes
 
-Above 2048 rows :class:`~torchrl_softae.modules.EnsembleWorldModel` runs its inference network in
-passes of at most a measured number of rows (``inference_tile_rows``): a hidden layer's output at
-N rows is N x 5 x 256 values, 84 MiB in fp32 at the 16480 rows of 8 ten-particle plans as one batch,
-and passes of a few thousand rows keep each layer's input and output in cache. Here the arm-sized
-network (``network_output`` as the planner calls it: inference path and pass size measured at
-first use) is timed at the rows of one ten-particle plan step (2060), of 8 one-particle plans as one
-batch (1648) and of 8 ten-particle plans (16480), in one pass and in passes of 512, 1024 and 2048
-rows, interleaved, median and best of the rounds, with the GEMM peak of the same run.
+The question: a hidden layer's output at N rows is N x 5 x 256 values, 84 MiB in fp32 at the 16480
+rows of 8 ten-particle plans as one batch; would running the network in passes of a few thousand
+rows, each layer's input and output then in cache, be faster than one pass? Here the arm-sized
+network (``network_output`` as the planner calls it, the inference path measured at first use)
+is timed at the rows of one ten-particle plan step (2060), of 8 one-particle plans as one batch
+(1648) and of 8 ten-particle plans (16480), in one pass and in passes of 512, 1024 and 2048 rows
+(the rows split as equally as they divide, the outputs written into one buffer as a tiled
+network would), interleaved, median and best of the rounds, with the GEMM peak of the same run.
 bf16 where the CPU has it natively (as ``planning_speed.py`` decides). Results: stdout and
-benchmarks/results/tile_rows_speed-KIND.json (KIND: amx, avx512-bf16 or no-bf16).
+benchmarks/results/tile_rows_speed-KIND[-default-allocator].json (KIND: amx, avx512-bf16 or
+no-bf16).
 """
 from __future__ import annotations
 
@@ -36,15 +38,28 @@ from torchrl_softae.modules.precision import resolve_planning_dtype  # noqa: E40
 #: (label, rows, with the log-variance head): what planning and batched evaluation call
 CALLS = (("1 ten-particle plan step", 2060, True), ("8 one-particle plans as one batch", 1648, False),
          ("8 ten-particle plans as one batch", 16480, True))
-#: pass sizes timed besides one pass ("auto": what the model measured at first use)
-PASSES = ("one pass", 512, 1024, 2048, "auto")
+#: pass sizes timed besides one pass
+PASSES = ("one pass", 512, 1024, 2048)
+
+
+def in_passes(model, x: torch.Tensor, with_logvar: bool, rows: int) -> torch.Tensor:
+    """``model.network_output(x)`` in passes of at most ``rows`` rows, into one ``(L, N, out)``
+    buffer (as the conv path lays it out: a view of ``(N, L, out)``)."""
+    parts = [model.network_output(chunk, with_logvar) for chunk in x.tensor_split(-(-x.shape[0] // rows))]
+    out = torch.empty(x.shape[0], parts[0].shape[0], parts[0].shape[-1], dtype=parts[0].dtype).transpose(0, 1)
+    start = 0
+    for part in parts:
+        out[:, start:start + part.shape[1]].copy_(part)
+        start += part.shape[1]
+    return out
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--rounds", type=int, default=11)
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--out", default=None, help="default benchmarks/results/tile_rows_speed-KIND.json")
+    p.add_argument("--out", default=None,
+                   help="default benchmarks/results/tile_rows_speed-KIND[-default-allocator].json")
     allocator_option(p)
     args = p.parse_args()
     if args.rounds < 3:
@@ -52,7 +67,8 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     allocator = use_allocator(args.allocator)
     cpu = cpu_description()
-    out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"tile_rows_speed-{cpu_kind(cpu)}.json"
+    suffix = "-default-allocator" if args.allocator == "default" else ""
+    out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"tile_rows_speed-{cpu_kind(cpu)}{suffix}.json"
     precisions = timed_precisions()
     print(f"# tile_rows_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; "
           f"AVX-512 {cpu['avx512f']}, AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; allocator: {allocator}",
@@ -63,16 +79,18 @@ def main() -> int:
         x = torch.randn(rows, 70, generator=torch.Generator().manual_seed(0))
         for name in precisions:
             for passes in PASSES:
-                def call(x=x, with_logvar=with_logvar, dtype=resolve_planning_dtype(name),
-                         tile="auto" if passes == "auto" else 0 if passes == "one pass" else passes):
-                    model.planning_dtype, model.inference_tile_rows = dtype, tile
-                    model.network_output(x, with_logvar)
+                def call(x=x, with_logvar=with_logvar, dtype=resolve_planning_dtype(name), passes=passes):
+                    model.planning_dtype = dtype
+                    if passes == "one pass":
+                        model.network_output(x, with_logvar)
+                    else:
+                        in_passes(model, x, with_logvar, passes)
                 jobs[(label, name, passes)] = call
     rows_of = {label: rows for label, rows, _ in CALLS}
     times = {key: [] for key in jobs}
     pk = peaks(precisions=precisions)
     with torch.no_grad():
-        print("first calls (the inference path and pass size are measured once per row bucket) ...", flush=True)
+        print("first calls (the inference path is measured once per row bucket) ...", flush=True)
         for fn in jobs.values():
             fn()
         for r in range(args.rounds):
@@ -102,7 +120,7 @@ def main() -> int:
                 rows_out.append({"call": label, "rows": rows, "precision": name, "passes": passes,
                                  "median_s": med, "best_s": best, "times_s": t, "speedup_vs_one_pass": whole / med,
                                  "fraction_of_peak": frac})
-    choices = {k: v for k, v in paths.choices().items() if k.startswith("tile rows|") or "70x256" in k}
+    choices = {k: v for k, v in paths.choices().items() if "70x256" in k}
     print("\nchoices measured at first use:\n" + "\n".join(f"  {k}: {v}" for k, v in choices.items()))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"cpu": cpu, "torch": torch.__version__, "threads": args.threads, "allocator": allocator,
