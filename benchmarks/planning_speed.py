@@ -20,7 +20,7 @@ reported as median and best, so a noisy machine cannot make one ratio out of one
   icem-bf16-dedup   same with bf16 hidden layers
   icem-deadline     SoftAE bf16 with a 50 ms wall-clock budget per action (fp32 where bf16 is not native)
   ...@PATH          (--compare-paths) the four icem rows with the ensemble's inference path fixed
-                    (each of EnsembleWorldModel.available_inference_paths()) instead of measured at first use
+                    (each of EnsembleWorldModel.available_inference_paths(dtype)) instead of measured at first use
   ...@torch-moments (--compare-moments) the four icem rows with mu and sigma computed by torch ops
                     (EnsembleWorldModel.fused_moments = False) instead of the one-pass kernel
 
@@ -679,9 +679,8 @@ def main():
         path_of = {}  # contender -> the inference path it runs with ("auto": measured at first use)
         if args.compare_paths:
             for key in icem_rows:
-                for path in model.available_inference_paths():
-                    if path == "conv-fused" and contender_precision(key) == "bf16" and not onednn_bf16_available():
-                        continue
+                hidden_dtype = resolve_planning_dtype(contender_precision(key)) or torch.float32
+                for path in model.available_inference_paths(hidden_dtype):  # the paths that run in its dtype here
                     planners[f"{key}@{path}"] = icem_contender(key, sample_env, opt_env, icem)
                     path_of[f"{key}@{path}"] = path
         torch_moments = set()  # contenders whose mu and sigma are torch ops (the kernel's baseline)

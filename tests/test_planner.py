@@ -11,7 +11,6 @@ from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, Uncertain
 from torchrl_softae.modules.planners import rollout_returns
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner, MPPIPlanner, colored_noise
 from torchrl_softae.modules.paths import INFERENCE_PATHS
-from torchrl_softae.modules.precision import onednn_bf16_available
 
 
 def test_colored_noise_unit_variance_and_correlation():
@@ -125,10 +124,9 @@ def test_bf16_ranking_matches_fp32(path):
     a = torch.rand(400, 2) * 2 - 1
     td = TensorDict({"observation": x, "action": a, ("next", "observation"): x + 0.3 * torch.sin(3 * a[:, :1] + x)}, [400])
     EnsembleTrainer(EnsembleLoss(tenv.base_env.world_model), lr=3e-3, epochs=20).fit(td)
-    if path not in tenv.base_env.world_model.available_inference_paths():
-        pytest.skip(f"{path}: the compiled SiLU was not built here")
-    if path == "conv-fused" and not onednn_bf16_available():
-        pytest.skip("conv-fused: oneDNN has no bf16 convolution on this CPU (test_ensemble checks the error)")
+    if path not in tenv.base_env.world_model.available_inference_paths(torch.bfloat16):
+        pytest.skip(f"{path} does not run in bf16 here (the compiled SiLU not built, or conv-fused without oneDNN's "
+                    "bf16 convolution: test_ensemble checks the error)")
     tenv.base_env.world_model.inference_path = path  # every kernel path keeps the ranking
     fp32 = ICEMPlanner(tenv, planning_horizon=5)
     bf16 = ICEMPlanner(tenv, planning_horizon=5, precision="bf16")

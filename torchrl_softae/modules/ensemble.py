@@ -408,12 +408,17 @@ class EnsembleWorldModel(TensorDictModuleBase):
     #: ``SOFTAE_INFERENCE_PATH`` sets the default
     inference_path: str = "auto"
 
-    def available_inference_paths(self) -> tuple[str, ...]:
+    def available_inference_paths(self, dtype: torch.dtype | None = None) -> tuple[str, ...]:
         """The inference paths this model can run here: the compiled-SiLU ones need ``nn.SiLU`` and
-        the kernel built (:mod:`.silu_kernel`)."""
-        if self._silu_kernel_applies():
-            return INFERENCE_PATHS
-        return tuple(p for p in INFERENCE_PATHS if not p.endswith("-silu-kernel"))
+        the kernel built (:mod:`.silu_kernel`). With ``dtype`` (the hidden layers' dtype), only
+        those that run in it: ``conv-fused`` also needs an activation oneDNN fuses and oneDNN's own
+        convolution in ``dtype`` (bf16 needs AVX512-BW/VL/DQ or AVX-NE-CONVERT)."""
+        usable = INFERENCE_PATHS if self._silu_kernel_applies() else tuple(
+            p for p in INFERENCE_PATHS if not p.endswith("-silu-kernel"))
+        if dtype is None:
+            return usable
+        return tuple(p for p in usable
+                     if p != "conv-fused" or (self._fused_activation() is not None and _onednn_runs(dtype)))
 
     def _inference_path(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> str:
         """Grouped convolutions (oneDNN, CPU only) or batched matmuls for a shared ``(N, in)`` input."""
@@ -438,8 +443,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
         packing = "packed conv weights" if self._packs_conv_weights(dtype) else "plain conv weights"
         key = f"ensemble {self.ensemble_size}|{shapes}|{dtype}|rows {rows}|cols {cols}|{packing}"
         probe = torch.randn(rows, x.shape[1], dtype=x.dtype, generator=torch.Generator().manual_seed(0))
-        candidates = {p: (lambda p=p: self._run_path(p, probe, dtype, cols)) for p in self.available_inference_paths()
-                      if p != "conv-fused" or (self._fused_activation() is not None and _onednn_runs(dtype))}
+        candidates = {p: (lambda p=p: self._run_path(p, probe, dtype, cols))
+                      for p in self.available_inference_paths(dtype)}
         self._path_memo[memo] = paths.choose(key, candidates)
         return self._path_memo[memo]
 
