@@ -217,15 +217,17 @@ def test_the_cache_key_tells_apart_machines_with_the_same_model_name():
     the inference paths differently: a choice measured on one must not be read on the other, nor
     one measured before the compiled SiLU ran on this instruction set."""
     from torchrl_softae.modules.paths import cpu_key
+    from torchrl_softae.modules.precision import parse_cpuinfo
 
     avx512 = ("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 17\n"
               "model name\t: AMD EPYC\nflags\t\t: fpu sse2 avx2 fma avx512f avx512bw avx512_bf16\n\n"
               "processor\t: 1\nmodel name\t: something else\n")
     avx2 = avx512.replace("model\t\t: 17", "model\t\t: 1").replace(" avx512f avx512bw avx512_bf16", "")
+    avx512, avx2 = parse_cpuinfo(avx512), parse_cpuinfo(avx2)
     assert cpu_key(avx512, "avx512bf16") == "AMD EPYC|family 25 model 17|avx2+fma+avx512f+avx512bw+avx512_bf16|SiLU kernel avx512bf16"
     assert cpu_key(avx2, "avx2") == "AMD EPYC|family 25 model 1|avx2+fma|SiLU kernel avx2"
     assert cpu_key(avx2, "portable") != cpu_key(avx2, "avx2")
-    assert cpu_key("", None) == "unknown|family ? model ?|no listed ISA|SiLU kernel not built"
+    assert cpu_key(parse_cpuinfo(""), None) == "unknown|family ? model ?|no listed ISA|SiLU kernel not built"
 
 
 @pytest.mark.skipif(not silu_kernel.available(), reason="the compiled SiLU was not built (no C compiler at install)")

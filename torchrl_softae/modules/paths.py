@@ -6,14 +6,14 @@ beats MKL's AVX2 path; Intel with AMX: MKL's fp32 GEMM beats oneDNN's), so each 
 once on the real shapes at first use and cached for the process and on disk
 (``$TORCHRL_SOFTAE_CACHE/paths.json``, keyed by CPU model and instruction sets, the compiled
 SiLU's instruction set, torch version, thread count, the candidates and how they were timed), so
-a resumed run on the same kind of machine makes the same choice as the run it resumes. Each candidate is timed in 5 interleaved rounds of at least 2 ms and judged by its best
-round: on a shared host, interference only ever adds time.
+a resumed run on the same kind of machine makes the same choice as the run it resumes. Each
+candidate is timed in 5 interleaved rounds of at least 2 ms and judged by its best round: on a
+shared host, interference only ever adds time.
 ``SOFTAE_INFERENCE_PATH=conv|conv-fused|bmm|conv-silu-kernel|bmm-silu-kernel``
 (or ``EnsembleWorldModel.inference_path``) fixes it for reproducibility.
 """
 from __future__ import annotations
 
-import functools
 import json
 import os
 import threading
@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from torchrl_softae.modules import silu_kernel
+from torchrl_softae.modules.precision import cpu_info
 
 __all__ = ["choose", "choices", "cache_path", "cpu_key", "INFERENCE_PATHS"]
 
@@ -45,37 +46,21 @@ def cache_path() -> Path:
 _RANKING_FLAGS = ("avx2", "fma", "avx512f", "avx512bw", "avx512_bf16", "amx_bf16")
 
 
-def cpu_key(cpuinfo: str, silu_isa: str | None) -> str:
-    """The CPU as the cache key names it, from ``/proc/cpuinfo``'s text. The model name alone is
-    not enough: virtual machines of two kinds both report "AMD EPYC", one with AVX-512 and one
-    with AVX2 only, and a choice measured on one can be 1.8x slower on the other. So the key also
-    has the family, model and the instruction sets of :data:`_RANKING_FLAGS`, and which
-    instruction set the compiled SiLU runs on (``silu_isa``: a rebuilt kernel may rank
-    differently)."""
-    info: dict[str, str] = {}
-    for line in cpuinfo.splitlines():
-        if not line.strip():
-            break  # the first processor's block describes them all
-        name, _, value = line.partition(":")
-        info.setdefault(name.strip(), value.strip())
+def cpu_key(info: dict[str, str], silu_isa: str | None) -> str:
+    """The CPU as the cache key names it, from its ``/proc/cpuinfo`` fields
+    (:func:`~torchrl_softae.modules.precision.cpu_info`). The model name alone is not enough:
+    virtual machines of two kinds both report "AMD EPYC", one with AVX-512 and one with AVX2 only,
+    and a choice measured on one can be 1.8x slower on the other. So the key also has the family,
+    model and the instruction sets of :data:`_RANKING_FLAGS`, and which instruction set the
+    compiled SiLU runs on (``silu_isa``: a rebuilt kernel may rank differently)."""
     flags = set(info.get("flags", "").split())
     isa = "+".join(f for f in _RANKING_FLAGS if f in flags) or "no listed ISA"
     return (f"{info.get('model name', 'unknown')}|family {info.get('cpu family', '?')} model "
             f"{info.get('model', '?')}|{isa}|SiLU kernel {silu_isa or 'not built'}")
 
 
-@functools.lru_cache(maxsize=1)
-def _cpu() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            text = f.read()
-    except OSError:
-        text = ""
-    return cpu_key(text, silu_kernel.isa())
-
-
 def _machine() -> str:
-    return f"{_cpu()}|torch {torch.__version__}|{torch.get_num_threads()} threads"
+    return f"{cpu_key(cpu_info(), silu_kernel.isa())}|torch {torch.__version__}|{torch.get_num_threads()} threads"
 
 
 #: interleaved rounds per candidate; each round repeats a call until it has run this long

@@ -6,20 +6,35 @@ import platform
 
 import torch
 
-__all__ = ["cpu_flags", "fast_bf16_available", "onednn_bf16_available", "resolve_planning_dtype"]
+__all__ = ["cpu_flags", "cpu_info", "parse_cpuinfo", "fast_bf16_available", "onednn_bf16_available", "resolve_planning_dtype"]
+
+
+def parse_cpuinfo(text: str) -> dict[str, str]:
+    """The first processor's fields of ``/proc/cpuinfo``'s ``text`` (name -> value): on x86 every
+    processor's block repeats them."""
+    info: dict[str, str] = {}
+    for line in text.splitlines():
+        if not line.strip():
+            break
+        name, _, value = line.partition(":")
+        info.setdefault(name.strip(), value.strip())
+    return info
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_info() -> dict[str, str]:
+    """This CPU's ``/proc/cpuinfo`` fields (:func:`parse_cpuinfo`; empty off Linux)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return parse_cpuinfo(f.read())
+    except OSError:
+        return {}
 
 
 @functools.lru_cache(maxsize=1)
 def cpu_flags() -> frozenset:
     """CPU feature flags from /proc/cpuinfo (empty off Linux)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    return frozenset(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    return frozenset()
+    return frozenset(cpu_info().get("flags", "").split())
 
 
 def fast_bf16_available() -> bool:
