@@ -230,6 +230,20 @@ def test_the_cache_key_tells_apart_machines_with_the_same_model_name():
     assert cpu_key(parse_cpuinfo(""), None) == "unknown|family ? model ?|no listed ISA|SiLU kernel not built"
 
 
+def test_arm_cpuinfo_features_are_read_as_flags():
+    """aarch64's /proc/cpuinfo lists its flags as ``Features`` and names the CPU by implementer and
+    part: BFloat16 (``bf16``) must be seen, and two ARM cores must not share a cache key."""
+    from torchrl_softae.modules.paths import cpu_key
+    from torchrl_softae.modules.precision import flags_of, parse_cpuinfo
+
+    neoverse_v1 = parse_cpuinfo("processor\t: 0\nBogoMIPS\t: 2100.00\nFeatures\t: fp asimd sve bf16 i8mm\n"
+                                "CPU implementer\t: 0x41\nCPU architecture: 8\nCPU part\t: 0xd40\n\n")
+    neoverse_n1 = parse_cpuinfo("processor\t: 0\nFeatures\t: fp asimd\nCPU implementer\t: 0x41\nCPU part\t: 0xd0c\n")
+    assert {"bf16", "sve"} <= flags_of(neoverse_v1) and "bf16" not in flags_of(neoverse_n1)
+    assert cpu_key(neoverse_v1, None) == "ARM implementer 0x41|part 0xd40|sve+bf16+i8mm|SiLU kernel not built"
+    assert cpu_key(neoverse_n1, None) == "ARM implementer 0x41|part 0xd0c|no listed ISA|SiLU kernel not built"
+
+
 @pytest.mark.skipif(not silu_kernel.available(), reason="the compiled SiLU was not built (no C compiler at install)")
 def test_compiled_silu_matches_torch_in_fp32_and_bf16_on_every_layout():
     """The kernel on every instruction set this CPU has: fp32 within a few 1e-7 relative of

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from torchrl_softae.modules import silu_kernel
-from torchrl_softae.modules.precision import cpu_info
+from torchrl_softae.modules.precision import cpu_info, flags_of
 
 __all__ = ["choose", "choices", "cache_path", "cpu_key", "INFERENCE_PATHS"]
 
@@ -43,7 +43,8 @@ def cache_path() -> Path:
 
 
 #: the instruction sets that change which path is fastest; part of the machine's key
-_RANKING_FLAGS = ("avx2", "fma", "avx512f", "avx512bw", "avx512_bf16", "amx_bf16")
+#: (x86, then ARM's scalable vectors, BFloat16 and int8 matmul instructions)
+_RANKING_FLAGS = ("avx2", "fma", "avx512f", "avx512bw", "avx512_bf16", "amx_bf16", "sve", "bf16", "i8mm")
 
 
 def cpu_key(info: dict[str, str], silu_isa: str | None) -> str:
@@ -52,11 +53,16 @@ def cpu_key(info: dict[str, str], silu_isa: str | None) -> str:
     virtual machines of two kinds both report "AMD EPYC", one with AVX-512 and one with AVX2 only,
     and a choice measured on one can be 1.8x slower on the other. So the key also has the family,
     model and the instruction sets of :data:`_RANKING_FLAGS`, and which instruction set the
-    compiled SiLU runs on (``silu_isa``: a rebuilt kernel may rank differently)."""
-    flags = set(info.get("flags", "").split())
+    compiled SiLU runs on (``silu_isa``: a rebuilt kernel may rank differently). ARM CPUs list no
+    model name, family or model: their implementer and part number name them instead."""
+    flags = flags_of(info)
     isa = "+".join(f for f in _RANKING_FLAGS if f in flags) or "no listed ISA"
-    return (f"{info.get('model name', 'unknown')}|family {info.get('cpu family', '?')} model "
-            f"{info.get('model', '?')}|{isa}|SiLU kernel {silu_isa or 'not built'}")
+    if "model name" not in info and "CPU part" in info:
+        name = f"ARM implementer {info.get('CPU implementer', '?')}|part {info['CPU part']}"
+    else:
+        name = (f"{info.get('model name', 'unknown')}|family {info.get('cpu family', '?')} model "
+                f"{info.get('model', '?')}")
+    return f"{name}|{isa}|SiLU kernel {silu_isa or 'not built'}"
 
 
 def _machine() -> str:

@@ -6,7 +6,7 @@ import platform
 
 import torch
 
-__all__ = ["cpu_flags", "cpu_info", "parse_cpuinfo", "fast_bf16_available", "onednn_bf16_available", "resolve_planning_dtype"]
+__all__ = ["cpu_flags", "cpu_info", "flags_of", "parse_cpuinfo", "fast_bf16_available", "onednn_bf16_available", "resolve_planning_dtype"]
 
 
 def parse_cpuinfo(text: str) -> dict[str, str]:
@@ -31,14 +31,21 @@ def cpu_info() -> dict[str, str]:
         return {}
 
 
+def flags_of(info: dict[str, str]) -> frozenset:
+    """The feature flags of :func:`parse_cpuinfo`'s fields: x86 lists them as ``flags``, ARM
+    (aarch64) as ``Features`` (where ``bf16`` is the BFloat16 instructions)."""
+    return frozenset((info.get("flags") or info.get("Features") or "").split())
+
+
 @functools.lru_cache(maxsize=1)
 def cpu_flags() -> frozenset:
     """CPU feature flags from /proc/cpuinfo (empty off Linux)."""
-    return frozenset(cpu_info().get("flags", "").split())
+    return flags_of(cpu_info())
 
 
 def fast_bf16_available() -> bool:
-    """``True`` when bf16 matmuls run natively (AMX-BF16 or AVX512-BF16 on x86, or Apple/ARM bf16)."""
+    """``True`` when bf16 matmuls run natively: AMX-BF16 or AVX512-BF16 on x86, the BFloat16
+    instructions on aarch64 Linux (macOS has no /proc/cpuinfo: fp32 there)."""
     flags = cpu_flags()
     if {"amx_bf16", "avx512_bf16"} & flags:
         return True
