@@ -88,7 +88,7 @@ from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
 from torchrl_softae.modules.ensemble import ensemble_std
 from torchrl_softae.modules import moments_kernel, silu_kernel
 from torchrl_softae.modules.precision import (
-    cpu_flags, cpu_info, fast_bf16_available, onednn_bf16_available, resolve_planning_dtype)
+    cpu_flags, cpu_info, cpu_name, fast_bf16_available, onednn_bf16_available, resolve_planning_dtype)
 
 SHAPES = [  # (name, d_s, d_a, H)
     ("arm58", 58, 12, 10),
@@ -148,7 +148,7 @@ def check_precision(p: argparse.ArgumentParser, precision: str, force_bf16: bool
 
 def cpu_description() -> dict:
     flags, info = cpu_flags(), cpu_info()
-    return {"cpu": info.get("model name") or info.get("vendor_id", "unknown"), "avx512f": "avx512f" in flags,
+    return {"cpu": cpu_name(info), "avx512f": "avx512f" in flags,
             "avx512_bf16": "avx512_bf16" in flags, "amx_bf16": "amx_bf16" in flags, "machine": platform.machine()}
 
 

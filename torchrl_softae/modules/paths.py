@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from torchrl_softae.modules import silu_kernel
-from torchrl_softae.modules.precision import cpu_info, flags_of
+from torchrl_softae.modules.precision import cpu_info, cpu_name, flags_of
 
 __all__ = ["choose", "choices", "cache_path", "cpu_key", "INFERENCE_PATHS"]
 
@@ -54,15 +54,12 @@ def cpu_key(info: dict[str, str], silu_isa: str | None) -> str:
     and a choice measured on one can be 1.8x slower on the other. So the key also has the family,
     model and the instruction sets of :data:`_RANKING_FLAGS`, and which instruction set the
     compiled SiLU runs on (``silu_isa``: a rebuilt kernel may rank differently). ARM CPUs list no
-    model name, family or model: their implementer and part number name them instead."""
+    model name (:func:`~torchrl_softae.modules.precision.cpu_name` names them by implementer and
+    part), family or model."""
     flags = flags_of(info)
     isa = "+".join(f for f in _RANKING_FLAGS if f in flags) or "no listed ISA"
-    if "model name" not in info and "CPU part" in info:
-        name = f"ARM implementer {info.get('CPU implementer', '?')}|part {info['CPU part']}"
-    else:
-        name = (f"{info.get('model name', 'unknown')}|family {info.get('cpu family', '?')} model "
-                f"{info.get('model', '?')}")
-    return f"{name}|{isa}|SiLU kernel {silu_isa or 'not built'}"
+    return (f"{cpu_name(info)}|family {info.get('cpu family', '?')} model {info.get('model', '?')}|{isa}|"
+            f"SiLU kernel {silu_isa or 'not built'}")
 
 
 def _machine() -> str:

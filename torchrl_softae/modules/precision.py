@@ -6,7 +6,7 @@ import platform
 
 import torch
 
-__all__ = ["cpu_flags", "cpu_info", "flags_of", "parse_cpuinfo", "fast_bf16_available", "onednn_bf16_available", "resolve_planning_dtype"]
+__all__ = ["cpu_flags", "cpu_info", "cpu_name", "flags_of", "parse_cpuinfo", "fast_bf16_available", "onednn_bf16_available", "resolve_planning_dtype"]
 
 
 def parse_cpuinfo(text: str) -> dict[str, str]:
@@ -35,6 +35,16 @@ def flags_of(info: dict[str, str]) -> frozenset:
     """The feature flags of :func:`parse_cpuinfo`'s fields: x86 lists them as ``flags``, ARM
     (aarch64) as ``Features`` (where ``bf16`` is the BFloat16 instructions)."""
     return frozenset((info.get("flags") or info.get("Features") or "").split())
+
+
+def cpu_name(info: dict[str, str]) -> str:
+    """The CPU's name from :func:`parse_cpuinfo`'s fields: x86's ``model name``; ARM lists none,
+    so its implementer and part number; else the vendor, else ``"unknown"``."""
+    if "model name" in info:
+        return info["model name"]
+    if "CPU part" in info:
+        return f"ARM implementer {info.get('CPU implementer', '?')} part {info['CPU part']}"
+    return info.get("vendor_id", "unknown")
 
 
 @functools.lru_cache(maxsize=1)
