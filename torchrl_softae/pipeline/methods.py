@@ -42,6 +42,14 @@ class Method:
         return self.reward == "task"
 
     @property
+    def ignored_settings(self) -> frozenset[str]:
+        """Run settings that do not change what this method does: beta where it plans without
+        hallucinated control, the task where it optimizes none. A sweep runs one trial, not one
+        per value, and tables do not set its runs apart by them."""
+        ignored = set() if self.uses_beta else {"beta"}
+        return frozenset(ignored if self.needs_task else ignored | {"task"})
+
+    @property
     def policy_propagation(self) -> str:
         """The propagation of task policies trained on its model (``softae policy``): its own where
         it trains one (MBPO-TS samples), else the mean."""
@@ -85,7 +93,7 @@ def row_labels(configs: list[dict]) -> list[str]:
     """Row labels of runs side by side in a table or plot (their run configs in, one label each).
 
     A label is the method's name, plus every setting in which runs of that method differ (beta
-    only for a method that uses it), e.g. ``softae beta=1`` and ``softae beta=2``: runs are
+    and the task only for a method they change, :attr:`Method.ignored_settings`), e.g. ``softae beta=1`` and ``softae beta=2``: runs are
     averaged only with runs that differ in nothing but the seed. Configs are compared as the runs
     ran (fields added since a run was written at their defaults), so an older run is not set apart
     by a field it could not store."""
@@ -98,7 +106,7 @@ def row_labels(configs: list[dict]) -> list[str]:
         by_method[f.get("method")].append(f)
     for m, fs in by_method.items():
         method = METHODS.get(m)
-        ignored = set(_NOT_IDENTITY) | ({"beta"} if method is not None and not method.uses_beta else set())
+        ignored = set(_NOT_IDENTITY) | (method.ignored_settings if method is not None else set())
         keys = set().union(*fs) - ignored
         differing[m] = {k for k in keys if len({repr(f.get(k)) for f in fs}) > 1}
     labels = []

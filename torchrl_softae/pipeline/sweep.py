@@ -131,8 +131,8 @@ def expand(spec: dict, root: str | Path) -> tuple[list[Trial], int]:
     trials, seen, total = [], set(), 0
     for run in _combinations(spec):
         total += 1
-        if not get_method(str(run.get("method", "softae"))).uses_beta:
-            run.pop("beta", None)  # beta does not change this method: one run, not one per beta
+        for name in get_method(str(run.get("method", "softae"))).ignored_settings:
+            run.pop(name, None)  # it does not change this method: one run, not one per value
         key = tuple(sorted((k, str(v)) for k, v in run.items()))
         if key in seen:
             continue
