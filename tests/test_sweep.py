@@ -277,3 +277,76 @@ def test_report_shows_the_heldout_error_by_group_where_runs_logged_groups(tmp_pa
     (row,) = table["rows"]
     assert row["heldout_nmse/tip"] == [0.1, 0.3] and row["heldout_nmse/velocities"] == [5.0, 7.0]
     assert "| random | 2 | 3 ± 1 | 0.2 ± 0.1 | 6 ± 1 | 0.1 ± 0 |" in text
+
+
+def test_a_sweep_drops_the_settings_a_method_ignores(tmp_path):
+    """A grid of methods with a task and a beta: the task reaches only the methods that optimize
+    one, beta only the methods that plan with hallucinated control, so the exploration-only
+    methods keep their run names and configs (one trial each, no duplicate per task)."""
+    from torchrl_softae.pipeline.sweep import expand, load_sweep
+
+    text = TINY.replace("method: {values: [random, softae]}", "method: {values: [random, hucrl, softae]}").replace(
+        "beta: {value: 2.0}", "beta: {value: 2.0}\n  task: {values: [swingup, spin]}")
+    trials, dropped = expand(load_sweep(_write(tmp_path, text)), tmp_path / "runs")
+    names = sorted({t.name for t in trials})
+    assert names == ["Pendulum-v1/hucrl-b2-s0", "Pendulum-v1/hucrl-b2-s1", "Pendulum-v1/random-s0",
+                     "Pendulum-v1/random-s1", "Pendulum-v1/softae-b2-s0", "Pendulum-v1/softae-b2-s1"]
+    assert dropped == 2 * 2 * 3 - 8  # random and softae: one trial per seed, not one per task
+    for t in trials:
+        flags = {a.split("=")[0] for a in t.argv if a.startswith("--")}
+        assert ("--task" in flags) == (t.method == "hucrl") and ("--beta" in flags) == (t.method != "random"), t.argv
+
+
+def _hand_made_run(root, name, method, seed, nmse, returns, refs=None):
+    """A finished one-episode run dir as ``softae explore`` + ``softae evaluate`` leave it."""
+    from torchrl_softae.pipeline.config import ExploreConfig
+
+    run = root / "Pendulum-v1" / name
+    (run / "eval").mkdir(parents=True)
+    cfg = ExploreConfig(env="Pendulum-v1", method=method, episodes=1, seed=seed,
+                        task="swingup" if method == "hucrl" else None).to_dict()
+    (run / "config.json").write_text(json.dumps({"config": cfg}))
+    (run / "metrics.jsonl").write_text(json.dumps({"episode": 0, "transitions": 200, "coverage": 0.5,
+                                                   "heldout_nmse": nmse}) + "\n")
+    (run / "eval" / "swingup.json").write_text(json.dumps({"returns": returns, "metrics": [{"upright_fraction_last_half": 0.5}] * len(returns)}))
+    if refs is not None:
+        (run / "eval" / "references.json").write_text(json.dumps({"episodes": 1, "returns": refs}))
+
+
+def test_report_merges_the_runs_archived_in_an_earlier_report(tmp_path, capsys):
+    """A baseline run later beside runs whose dirs are gone: ``--merge`` puts the committed
+    report's archived runs and the new run dirs in one table; a new run dir of the same
+    ENV/NAME replaces its archived record; bad input is one line."""
+    old, new = tmp_path / "old", tmp_path / "new"
+    _hand_made_run(old, "random-s0", "random", 0, 0.4, [1.0], refs={"no control (zero action)": {"swingup": [0.5]}})
+    _hand_made_run(old, "random-s1", "random", 1, 0.6, [3.0])
+    assert main(["report", str(old), "--no-plots"]) == 0
+    committed = tmp_path / "committed" / "report.json"
+    committed.parent.mkdir()
+    committed.write_bytes((old / "report.json").read_bytes())
+    shutil.rmtree(old)
+    _hand_made_run(new, "hucrl-b2-s0", "hucrl", 0, 0.2, [5.0])
+    _hand_made_run(new, "hucrl-b2-s1", "hucrl", 1, 0.3, [7.0])
+    _hand_made_run(new, "random-s1", "random", 1, 0.8, [2.0])  # rerun: replaces the archived seed 1
+    capsys.readouterr()
+    assert main(["report", str(new), "--merge", str(committed)]) == 0
+    captured = capsys.readouterr()
+    table = json.loads((new / "report.json").read_text())
+    (t,) = table["tables"]
+    assert [(r["method"], r["seeds"], r["heldout_nmse"], r["swingup/return"]) for r in t["rows"]] == [
+        ("random", [0, 1], [0.4, 0.8], [1.0, 2.0]), ("hucrl", [0, 1], [0.2, 0.3], [5.0, 7.0])]
+    assert t["references"] == {"no control (zero action)": {"swingup": [0.5]}}
+    assert sorted(r["run_dir"] for r in table["runs"]) == ["Pendulum-v1/hucrl-b2-s0", "Pendulum-v1/hucrl-b2-s1",
+                                                           "Pendulum-v1/random-s0", "Pendulum-v1/random-s1"]
+    assert f"- {committed}: Pendulum-v1/random-s0" in captured.out
+    # the bars come from the merged records; the heatmaps would need every run's collected states
+    assert (new / "plots" / "mse_bars.png").exists() and (new / "plots" / "task_returns.png").exists()
+    assert "coverage heatmaps are not redrawn" in captured.err
+    # the merged report is itself an archive: merging it into an empty root gives the same table
+    again = tmp_path / "again"
+    assert main(["report", str(again), "--merge", str(new / "report.json"), "--no-plots"]) == 0
+    assert json.loads((again / "report.json").read_text())["tables"] == table["tables"]
+    capsys.readouterr()
+    assert main(["report", str(new), "--merge", str(tmp_path / "nope.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nope.json is not a file (expected a report.json" in err[0], err

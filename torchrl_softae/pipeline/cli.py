@@ -175,7 +175,7 @@ def _ray_available() -> bool:
 def cmd_report(args) -> int:
     from torchrl_softae.pipeline.report import report
 
-    md, json_path, md_path, plots = report(args.root, plots=not args.no_plots)
+    md, json_path, md_path, plots = report(args.root, plots=not args.no_plots, merge=args.merge)
     print(md)
     print(f"\nwrote {md_path} and {json_path}" + (f"; plots: {', '.join(str(p) for p in plots)}" if plots else ""))
     return 0
@@ -279,6 +279,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("report", help="the paper's tables and plots from a folder of runs (a sweep or runs by hand)")
     p.add_argument("root", help="a folder of run dirs")
+    p.add_argument("--merge", action="append", default=[], metavar="REPORT.json",
+                   help="also the runs archived in an earlier report (their run dirs gone); a run dir below "
+                        "ROOT replaces an archived run of the same ENV/NAME (repeatable)")
     p.add_argument("--no-plots", action="store_true")
     p.set_defaults(func=cmd_report)
 

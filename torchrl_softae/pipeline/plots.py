@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from torchrl_softae.pipeline.methods import METHOD_NAMES, label_order, row_labels
-from torchrl_softae.pipeline.report import is_finished
+from torchrl_softae.pipeline.report import is_finished, read_archive
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, run_dirs_below
 from torchrl_softae.tasks.base import metric_label
 
@@ -320,18 +320,10 @@ def plot_report(report_json: str | Path, warn=None) -> list[Path]:
     collected states and are not redrawn (the report's own are kept)."""
     warn = warn or (lambda msg: print(msg, file=sys.stderr))
     path = Path(report_json)
-    if not path.is_file():
-        raise FileNotFoundError(f"--report {path} is not a file (expected a report.json written by softae report)")
-    try:
-        runs = json.loads(path.read_text()).get("runs")
-    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-        runs = None
-    if not isinstance(runs, list):
-        raise FileNotFoundError(f"--report {path} has no 'runs' archive (a report.json of softae report keeps one "
-                                "since reports archived their runs; an older report cannot be redrawn)")
+    runs = read_archive(path)
     finished = [r for r in runs if is_finished(r)]
     if not finished:
-        raise FileNotFoundError(f"--report {path} holds no finished run: nothing to plot")
+        raise FileNotFoundError(f"{path} holds no finished run: nothing to plot")
     refs = Path(REFERENCES_FILE).stem  # the report archives eval/references.json among the evaluations
     records = [{"config": r["config"], "episodes": r["episodes_done"], "transitions": r["history"][-1]["transitions"],
                 "history": r["history"], "evals": {t: e for t, e in r["evals"].items() if t != refs},

@@ -10,7 +10,9 @@ true}``). Runs that
 have not reached their configured number of episodes are listed as unfinished, never averaged.
 Markdown and JSON go to ``ROOT/report.md`` and ``ROOT/report.json``; comparison plots to
 ``ROOT/plots/``. ``report.json`` also keeps every run's config, per-episode history and
-evaluations (``runs``), so a committed report outlives the run dirs it was made from.
+evaluations (``runs``), so a committed report outlives the run dirs it was made from, and
+``softae report ROOT --merge OLD/report.json`` adds the runs of such a report to the runs below
+``ROOT`` (a baseline run later beside runs whose dirs are gone): one table, every run's record kept.
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ from torchrl_softae.pipeline.methods import label_order, row_labels
 from torchrl_softae.pipeline.runs import POLICIES_DIR, CheckpointError, RunDir, run_dirs_below
 from torchrl_softae.tasks.base import metric_label
 
-__all__ = ["collect", "is_finished", "report"]
+__all__ = ["archived_runs", "collect", "is_finished", "read_archive", "report"]
 
 
 def _fmt(values, digits: int = 4) -> str:
@@ -70,18 +72,55 @@ def collect(root: str | Path, warn=None) -> list[dict]:
     return out
 
 
+def read_archive(path: str | Path) -> list[dict]:
+    """The ``runs`` archive of a ``report.json`` written by ``softae report``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is not a file (expected a report.json written by softae report)")
+    try:
+        runs = json.loads(path.read_text()).get("runs")
+    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        runs = None
+    if not isinstance(runs, list):
+        raise FileNotFoundError(f"{path} has no 'runs' archive (a report.json of softae report keeps one "
+                                "since reports archived their runs; an older report cannot be read)")
+    return runs
+
+
+def archived_runs(path: str | Path, root: str | Path) -> list[dict]:
+    """The runs archived in the report ``path``, as records of :func:`collect` placed below
+    ``root`` by their archived path (``ENV/NAME``), each marked with the report it came from."""
+    out = []
+    for r in read_archive(path):
+        history = r["history"]
+        out.append({**r, "run_dir": str(Path(root) / r["run_dir"]), "archived": str(path),
+                    "transitions": history[-1]["transitions"] if history else 0,
+                    "last": history[-1] if history else {}})
+    return out
+
+
 def is_finished(run: dict) -> bool:
     """Whether a run record (of :func:`collect`, or archived in ``report.json``) reached its
     configured number of episodes: only finished runs are averaged and plotted."""
     return bool(run["episodes_done"]) and run["episodes_done"] >= (run["episodes_target"] or 0)
 
 
-def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, Path, list]:
-    """Build the tables (markdown + JSON) and plots; returns ``(markdown, json path, md path, plots)``."""
+def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple = ()) -> tuple[str, Path, Path, list]:
+    """Build the tables (markdown + JSON) and plots; returns ``(markdown, json path, md path, plots)``.
+
+    ``merge``: earlier ``report.json`` files whose archived runs join the runs below ``root``; a
+    run dir below ``root`` replaces an archived run of the same ``ENV/NAME`` (it is newer)."""
     from torchrl_softae.pipeline.catalog import get_env_entry
 
+    warn = warn or (lambda m: print(m, file=sys.stderr))
     root = Path(root)
-    runs = collect(root, warn)
+    runs = collect(root, warn) if root.exists() or not merge else []
+    seen = {Path(r["run_dir"]).resolve() for r in runs}
+    for path in merge:
+        for r in archived_runs(path, root):
+            if Path(r["run_dir"]).resolve() not in seen:
+                seen.add(Path(r["run_dir"]).resolve())
+                runs.append(r)
     if not runs:
         raise FileNotFoundError(f"no run (config.json) below {root}")
     finished = [r for r in runs if is_finished(r)]
@@ -114,8 +153,8 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
         head += [f"{t} SAC policy return" for t in policy_tasks]
         rows = []
         for m in label_order(by_method):
-            rs = by_method[m]
-            row = {"method": m, "seeds": sorted(r["seed"] for r in rs),
+            rs = sorted(by_method[m], key=lambda r: r["seed"])  # every per-seed list in the order of "seeds"
+            row = {"method": m, "seeds": [r["seed"] for r in rs],
                    "heldout_nmse": [r["last"].get("heldout_nmse") for r in rs],
                    "coverage": [r["last"].get("coverage") for r in rs]}
             cells = [m, str(len(rs)), _fmt(row["heldout_nmse"])]
@@ -157,12 +196,21 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
         tables.append({"env": env, "episodes": episodes, "transitions": transitions, "columns": head,
                        "rows": [{k: v for k, v in row.items() if k != "markdown"} for row in rows],
                        "references": refs})
+    archived = defaultdict(list)
+    for r in runs:
+        if r.get("archived"):
+            archived[r["archived"]].append(Path(r["run_dir"]).relative_to(root))
+    if archived:
+        md += ["## Runs from earlier reports (their run dirs are not below the root)", ""]
+        md += [f"- {path}: {', '.join(map(str, names))}" for path, names in archived.items()]
+        md.append("")
     if unfinished:
         md += ["## Unfinished runs (not averaged)", ""]
         md += [f"- {r['run_dir']}: {r['method']} seed {r['seed']}, {r['episodes_done']} of {r['episodes_target']} "
                "episodes" for r in unfinished]
         md.append("")
     text = "\n".join(md)
+    root.mkdir(parents=True, exist_ok=True)
     md_path, json_path = root / "report.md", root / "report.json"
     md_path.write_text(text)
     summary = ("run_dir", "method", "seed", "episodes_done", "episodes_target")
@@ -174,9 +222,16 @@ def report(root: str | Path, plots: bool = True, warn=None) -> tuple[str, Path, 
     json_path.write_text(json.dumps({"tables": tables, "unfinished": [{k: r[k] for k in summary} for r in unfinished],
                                      "runs": archive}, indent=1, default=float))
     written = []
-    if plots:
+    if plots and finished and any(r.get("archived") for r in finished):
+        from torchrl_softae.pipeline.plots import plot_report
+
+        # archived runs keep their histories and evaluations, not their collected states
+        written = plot_report(json_path, warn)
+        warn(f"softae report: {sum(map(len, archived.values()))} runs come from earlier reports without "
+             "their collected states: the coverage heatmaps are not redrawn")
+    elif plots and finished:
         from torchrl_softae.pipeline.plots import plot_comparison
 
         # the runs the tables average; unfinished ones would be a budget of their own
-        written = plot_comparison(root, warn, only=[r["run_dir"] for r in finished]) if finished else []
+        written = plot_comparison(root, warn, only=[r["run_dir"] for r in finished])
     return text, json_path, md_path, written
