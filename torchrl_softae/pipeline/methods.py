@@ -93,8 +93,9 @@ def row_labels(configs: list[dict]) -> list[str]:
     """Row labels of runs side by side in a table or plot (their run configs in, one label each).
 
     A label is the method's name, plus every setting in which runs of that method differ (beta
-    and the task only for a method they change, :attr:`Method.ignored_settings`), e.g. ``softae beta=1`` and ``softae beta=2``: runs are
-    averaged only with runs that differ in nothing but the seed. Configs are compared as the runs
+    and the task only for a method they change, :attr:`Method.ignored_settings`), e.g.
+    ``softae beta=1`` and ``softae beta=2``: runs are averaged only with runs that differ in
+    nothing but the seed. Configs are compared as the runs
     ran (fields added since a run was written at their defaults), so an older run is not set apart
     by a field it could not store."""
     from torchrl_softae.pipeline.config import flat_config  # config imports this table

@@ -38,6 +38,11 @@ def _fmt(values, digits: int = 4) -> str:
     return m + (f" ± {v.std():.2g}" if len(v) > 1 else "")
 
 
+def _progress(history: list[dict]) -> dict:
+    """What a run record derives from its per-episode history: transitions so far, last row."""
+    return {"transitions": history[-1]["transitions"] if history else 0, "last": history[-1] if history else {}}
+
+
 def collect(root: str | Path, warn=None) -> list[dict]:
     """One record per run dir below ``root``: config, progress, last history row, evaluations."""
     warn = warn or (lambda m: print(m, file=sys.stderr))
@@ -66,9 +71,7 @@ def collect(root: str | Path, warn=None) -> list[dict]:
             policies.setdefault(res["task"], res)
         out.append({"run_dir": str(run.path), "config": cfg, "env": cfg.get("env"), "method": cfg.get("method"),
                     "seed": cfg.get("seed"), "episodes_target": cfg.get("episodes"), "episodes_done": len(history),
-                    "transitions": history[-1]["transitions"] if history else 0,
-                    "last": history[-1] if history else {}, "history": history, "evals": evals,
-                    "policies": policies})
+                    **_progress(history), "history": history, "evals": evals, "policies": policies})
     return out
 
 
@@ -90,13 +93,8 @@ def read_archive(path: str | Path) -> list[dict]:
 def archived_runs(path: str | Path, root: str | Path) -> list[dict]:
     """The runs archived in the report ``path``, as records of :func:`collect` placed below
     ``root`` by their archived path (``ENV/NAME``), each marked with the report it came from."""
-    out = []
-    for r in read_archive(path):
-        history = r["history"]
-        out.append({**r, "run_dir": str(Path(root) / r["run_dir"]), "archived": str(path),
-                    "transitions": history[-1]["transitions"] if history else 0,
-                    "last": history[-1] if history else {}})
-    return out
+    return [{**r, "run_dir": str(Path(root) / r["run_dir"]), "archived": str(path), **_progress(r["history"])}
+            for r in read_archive(path)]
 
 
 def is_finished(run: dict) -> bool:
@@ -118,8 +116,9 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
     seen = {Path(r["run_dir"]).resolve() for r in runs}
     for path in merge:
         for r in archived_runs(path, root):
-            if Path(r["run_dir"]).resolve() not in seen:
-                seen.add(Path(r["run_dir"]).resolve())
+            where = Path(r["run_dir"]).resolve()
+            if where not in seen:
+                seen.add(where)
                 runs.append(r)
     if not runs:
         raise FileNotFoundError(f"no run (config.json) below {root}")
