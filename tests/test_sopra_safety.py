@@ -27,7 +27,8 @@ def _act(x):
     return TensorDict({"action": torch.as_tensor(np.asarray(x, dtype=np.float32))}, [])
 
 
-def _warm_twin():
+@pytest.fixture(scope="module")
+def warm_twin():
     """Step a twin once without a watchdog: the first step loads (or compiles) PyElastica's numba
     kernels, 0.3 s with a warm cache, far longer than a 150 ms wall-clock watchdog window."""
     env = SoPrAEnv("sim", install_signal_handlers=False, watchdog=False, control_period=0.05)
@@ -61,17 +62,16 @@ def test_nothing_reaches_the_valves_after_close_or_a_fault_without_a_rearm():
 
 
 # ------------------------------------------------------------------------------------ the watchdog
-def test_watchdog_vents_a_planner_that_stalls_mid_episode():
+def test_watchdog_vents_a_planner_that_stalls_mid_episode(warm_twin):
     """The planner stalls for twice the watchdog window: the twin is vented within the window (+ the
     watchdog's poll), the fault latches and the next step ends the episode with safety_fault."""
-    _warm_twin()
     period = 0.05
     # A 0.5 s window (10 periods): a twin step takes 13-60 ms of wall-clock time by CPU, and up to 3x
     # that on a loaded machine; the default 150 ms window tripped on healthy steps there.
     limits = SafetyLimits(watchdog_periods=10, stale_factor=10)
     env = SoPrAEnv("sim", control_period=period, install_signal_handlers=False, watchdog=True, limits=limits)
     env.twin.p.mocap_dropout = 0.0  # no random lost body in the middle of this test
-    window = env.limits.watchdog_periods * period
+    window = env.safety.watchdog_window
     latencies = []
     for trial in range(5):
         env.set_seed(trial)
@@ -183,10 +183,9 @@ def test_a_modbus_device_that_stops_answering_is_a_fault_not_a_hang():
 
 
 # ------------------------------------------------------------------------------------ episode ends
-def test_the_env_vents_at_every_episode_end():
+def test_the_env_vents_at_every_episode_end(warm_twin):
     # 1 s watchdog windows (commands and motion-capture frames): this test is about the episode
     # end, and a loaded CI machine once took more than 3 x 50 ms for one twin step.
-    _warm_twin()
     limits = SafetyLimits(watchdog_periods=20, stale_factor=20)
     env = SoPrAEnv("sim", install_signal_handlers=False, max_steps=4, watchdog=True, control_period=0.05,
                    limits=limits)
