@@ -98,6 +98,7 @@ def test_imagined_rollouts_start_from_real_states_and_have_the_requested_length(
     starts = torch.randn(7, 3)
     out = branched_rollouts(env, actor, starts, horizon=4)
     assert out.batch_size == (28,)
+    assert type(out) is TensorDict  # dense: a lazy stack is indexed and stored row by row
     steps = out.reshape(7, 4)
     torch.testing.assert_close(steps[:, 0]["observation"], starts)
     torch.testing.assert_close(steps[:, 1:]["observation"], steps[:, :-1]["next", "observation"])
