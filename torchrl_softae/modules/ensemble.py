@@ -570,7 +570,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         """Inference with batched matmuls: ``x`` ``(N, in)`` shared or ``(L, N, in)`` per member."""
         L = self.ensemble_size
         # a list, not a slice of the ModuleList: slicing builds a new ModuleList at every call,
-        # a fifth of a small model's step (measured on Pendulum's 2 x 64 ensemble)
+        # a tenth of a small model's call (Pendulum's 5 x 2 x 64, 80 rows: 759 -> 673 us)
         *hidden, last = self.layers
         if x.dim() == 2:
             # shared input: the first layer of all members is ONE (N, in) x (in, L*h) GEMM;
