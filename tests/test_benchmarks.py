@@ -72,3 +72,27 @@ def test_bf16_is_timed_only_where_the_cpu_has_it_natively(monkeypatch, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert exit_info.value.code == 2 and "--precision bf16: this CPU has no native bf16" in err[-1]
     assert planning_speed.best_peaks({"matmul_fp32": 50.0, "onednn_fp32": 60.0}) == {"fp32": 60.0}
+
+
+def test_heldout_extrapolation_splits_the_runs_own_metric(tmp_path):
+    """The diagnostic's per-group nMSE is the run's logged held-out metric, and its inside / outside
+    split weighs back to it: the split explains the number the tables report, not another one."""
+    import json
+
+    from test_pipeline import _explore_argv
+
+    from torchrl_softae.pipeline.cli import main
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import heldout_extrapolation
+
+    run = tmp_path / "run"
+    assert main(_explore_argv(run)) == 0  # tiny sizes: 2 episodes of 30 steps, 200 held-out transitions
+    logged = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])["heldout_nmse"]
+    r = heldout_extrapolation.extrapolation_report(run)
+    whole, share = r["groups"]["all"], r["heldout_outside_share"]
+    assert r["episodes"] == 2 and r["transitions"] == 60 and r["heldout_transitions"] == 200
+    assert abs(whole["nmse"] - logged) <= 1e-4 * logged
+    assert 0 < share < 1, share  # 60 transitions cannot span the held-out set's inputs
+    assert abs(share * whole["nmse_outside"] + (1 - share) * whole["nmse_inside"] - whole["nmse"]) <= 1e-4 * whole["nmse"]
+    assert len(whole["rms_per_episode"]) == 2 and all(v > 0 for v in whole["rms_per_episode"])
