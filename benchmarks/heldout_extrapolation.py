@@ -13,7 +13,8 @@ run dir or the per-user cache, never rebuilt here):
   (the run's ``heldout_nmse/GROUP`` is their weighted mean);
 - per exploration episode, the rms of each group in the explored states.
 
-Writes ``benchmarks/results/heldout_extrapolation/<run name>.json`` (``--out-dir`` to change).
+Writes ``benchmarks/results/heldout_extrapolation/<env>-<method>-s<seed>-ep<episodes>.json``
+(``--out-dir`` to change).
 """
 from __future__ import annotations
 
