@@ -11,7 +11,9 @@ run dir or the per-user cache, never rebuilt here):
 - the share of held-out transitions whose input (s, a) leaves the box of the explored inputs
   (per-dimension min and max), and the held-out nMSE of each group inside and outside that box
   (the run's ``heldout_nmse/GROUP`` is their weighted mean);
-- per exploration episode, the rms of each group in the explored states.
+- per exploration episode, the rms of each group in the explored states, and how much the
+  actions switch: the mean ``|a_t - a_(t-1)|`` over steps and action dimensions, beside its value
+  for i.i.d. uniform actions in the env's bounds (``(high - low) / 3``, the Random baseline's).
 
 Writes ``benchmarks/results/heldout_extrapolation/<env>-<method>-s<seed>-ep<episodes>.json``
 (``--out-dir`` to change).
@@ -37,6 +39,7 @@ def extrapolation_report(run_dir: Path) -> dict:
     cfg, model, state = load_run(run_dir)
     run = RunDir(run_dir)
     entry = get_env_entry(cfg.env)
+    _, action_spec = entry.specs()
     explored = run.read_transitions(state)
     heldout = heldout_set(entry, run, cfg.heldout_size)
     _, std, kept = reference_scale(reference_set(entry, run, heldout))
@@ -56,9 +59,14 @@ def extrapolation_report(run_dir: Path) -> dict:
     length = cfg.episode_length
     episodes = explored.shape[0] // length
     per_episode = explored["observation"][: episodes * length].reshape(episodes, length, -1)
+    actions = explored["action"][: episodes * length].reshape(episodes, length, -1)
+    low, high = action_spec.space.low, action_spec.space.high
     report = {"run": str(run_dir), "env": cfg.env, "method": cfg.method, "seed": cfg.seed,
               "episodes": state["episode"] + 1, "transitions": explored.shape[0],
               "heldout_transitions": heldout.shape[0], "heldout_outside_share": float(outside.float().mean()),
+              "action_change_per_episode": [float(v) for v in actions.diff(dim=1).abs().mean((1, 2))],
+              # E|u - u'| for u, u' i.i.d. uniform on [low, high] is (high - low) / 3
+              "action_change_uniform": float(((high - low) / 3).mean()),
               "groups": {}}
     for name, dims in groups.items():
         dims = torch.as_tensor(dims)
@@ -91,6 +99,8 @@ def main():
         print(f"{r['env']} {r['method']} seed {r['seed']}, {r['episodes']} episodes ({r['transitions']} transitions): "
               f"{100 * r['heldout_outside_share']:.0f} % of the {r['heldout_transitions']} held-out inputs leave "
               "the box of the explored inputs")
+        change = ", ".join(f"{v:.2f}" for v in r["action_change_per_episode"])
+        print(f"mean |a_t - a_(t-1)| by episode: {change} (i.i.d. uniform actions: {r['action_change_uniform']:.2f})")
         print("| group | nMSE | inside | outside | explored std / held-out | state change std ratio | "
               "rms by episode | held-out rms |")
         print("|---|---|---|---|---|---|---|---|")

@@ -87,7 +87,8 @@ def test_heldout_extrapolation_splits_the_runs_own_metric(tmp_path):
     import heldout_extrapolation
 
     run = tmp_path / "run"
-    assert main(_explore_argv(run)) == 0  # tiny sizes: 2 episodes of 30 steps, 200 held-out transitions
+    # tiny sizes: 2 episodes of 30 steps, 200 held-out transitions; Random, whose actions are i.i.d.
+    assert main(_explore_argv(run, method="random")) == 0
     logged = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])["heldout_nmse"]
     r = heldout_extrapolation.extrapolation_report(run)
     whole, share = r["groups"]["all"], r["heldout_outside_share"]
@@ -96,3 +97,7 @@ def test_heldout_extrapolation_splits_the_runs_own_metric(tmp_path):
     assert 0 < share < 1, share  # 60 transitions cannot span the held-out set's inputs
     assert abs(share * whole["nmse_outside"] + (1 - share) * whole["nmse_inside"] - whole["nmse"]) <= 1e-4 * whole["nmse"]
     assert len(whole["rms_per_episode"]) == 2 and all(v > 0 for v in whole["rms_per_episode"])
+    # Pendulum's torque is in [-2, 2]: i.i.d. uniform actions switch by 4/3 on average, and Random's
+    # two episodes (29 changes each) measure that within a few standard errors (0.17 each)
+    assert abs(r["action_change_uniform"] - 4 / 3) < 1e-6
+    assert all(0.8 < v < 1.9 for v in r["action_change_per_episode"]), r["action_change_per_episode"]
