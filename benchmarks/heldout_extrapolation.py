@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 from torchrl_softae.pipeline.catalog import get_env_entry
-from torchrl_softae.pipeline.data import heldout_set, reference_scale, reference_set
+from torchrl_softae.pipeline.data import heldout_set, normalized_mse, reference_scale, reference_set
 from torchrl_softae.pipeline.evaluate import load_run
 from torchrl_softae.pipeline.runs import RunDir
 
@@ -42,15 +42,16 @@ def extrapolation_report(run_dir: Path) -> dict:
     _, action_spec = entry.specs()
     explored = run.read_transitions(state)
     heldout = heldout_set(entry, run, cfg.heldout_size)
-    _, std, kept = reference_scale(reference_set(entry, run, heldout))
+    scale = reference_scale(reference_set(entry, run, heldout))
+    kept = scale[2]
     groups = {"all": list(range(model.observation_dim)), **entry.accuracy_groups}
 
-    mu, *_ = model.predict(heldout["observation"], heldout["action"])
-    # per held-out transition and dimension, the squared error in reference-std units (the metric's)
-    sq_err = ((mu - heldout["next", "observation"]) / std).square()
     inputs = lambda td: torch.cat([td["observation"], td["action"]], -1)  # noqa: E731
     x, box = inputs(heldout), inputs(explored)
     outside = ((x < box.min(0).values) | (x > box.max(0).values)).any(-1)
+    # the run's own metric (pipeline.data.normalized_mse) on the whole held-out set and on each side
+    nmse = {side: normalized_mse(model, heldout[mask], groups, scale)[1] if mask.any() else None
+            for side, mask in (("all", torch.ones_like(outside)), ("inside", ~outside), ("outside", outside))}
 
     def spread(td, dims):
         obs, nxt = td["observation"][:, dims], td["next", "observation"][:, dims]
@@ -58,13 +59,12 @@ def extrapolation_report(run_dir: Path) -> dict:
 
     length = cfg.episode_length
     episodes = explored.shape[0] // length
-    per_episode = explored["observation"][: episodes * length].reshape(episodes, length, -1)
-    actions = explored["action"][: episodes * length].reshape(episodes, length, -1)
+    per_episode = explored[: episodes * length].reshape(episodes, length)
     low, high = action_spec.space.low, action_spec.space.high
     report = {"run": str(run_dir), "env": cfg.env, "method": cfg.method, "seed": cfg.seed,
               "episodes": state["episode"] + 1, "transitions": explored.shape[0],
               "heldout_transitions": heldout.shape[0], "heldout_outside_share": float(outside.float().mean()),
-              "action_change_per_episode": [float(v) for v in actions.diff(dim=1).abs().mean((1, 2))],
+              "action_change_per_episode": [float(v) for v in per_episode["action"].diff(dim=1).abs().mean((1, 2))],
               # E|u - u'| for u, u' i.i.d. uniform on [low, high] is (high - low) / 3
               "action_change_uniform": float(((high - low) / 3).mean()),
               "groups": {}}
@@ -73,15 +73,14 @@ def extrapolation_report(run_dir: Path) -> dict:
         dims = dims[kept[dims]]
         if not dims.numel():
             continue
-        per_sample = sq_err[:, dims].mean(-1)
         (e_std, e_delta), (h_std, h_delta) = spread(explored, dims), spread(heldout, dims)
         report["groups"][name] = {
-            "nmse": float(per_sample.mean()),
-            "nmse_inside": float(per_sample[~outside].mean()) if (~outside).any() else None,
-            "nmse_outside": float(per_sample[outside].mean()) if outside.any() else None,
+            "nmse": nmse["all"][name],
+            "nmse_inside": nmse["inside"][name] if nmse["inside"] else None,
+            "nmse_outside": nmse["outside"][name] if nmse["outside"] else None,
             "std_ratio": float(e_std / h_std),
             "delta_std_ratio": float(e_delta / h_delta),
-            "rms_per_episode": [float(v) for v in per_episode[..., dims].square().mean((1, 2)).sqrt()],
+            "rms_per_episode": [float(v) for v in per_episode["observation"][..., dims].square().mean((1, 2)).sqrt()],
             "heldout_rms": float(heldout["observation"][:, dims].square().mean().sqrt()),
         }
     return report
