@@ -565,9 +565,22 @@ class EnsembleWorldModel(TensorDictModuleBase):
 
         return self._cached(layer, ("conv", dtype, cols, bucket), build)
 
+    def _kernel_bias(self, layer: EnsembleLinear, k: int) -> torch.Tensor:
+        """``layer``'s bias for :func:`~.silu_kernel.bias_silu_`, fp32 (the kernel adds it before
+        the activation, in fp32 whatever the layer's dtype): ``(L * k, out)``, each member's row
+        repeated ``k`` times as :meth:`_inference_weights` repeats its weights."""
+        return self._cached(layer, ("kernel bias", k), lambda w, b: (
+            None, b.reshape(layer.ensemble_size, -1).repeat_interleave(k, dim=0).float().contiguous()))[1]
+
     def _network_bmm(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None,
                      silu_kernel: bool = False) -> torch.Tensor:
-        """Inference with batched matmuls: ``x`` ``(N, in)`` shared or ``(L, N, in)`` per member."""
+        """Inference with batched matmuls: ``x`` ``(N, in)`` shared or ``(L, N, in)`` per member.
+
+        ``silu_kernel``: each hidden layer is a matmul without its bias and one pass of the
+        compiled kernel that adds the bias and activates (:func:`~.silu_kernel.bias_silu_`);
+        ``baddbmm`` would first copy the broadcast bias into its output, then read it back in the
+        GEMM: measured on an AMX CPU at 206 rows in bf16, 110 us per hidden layer against bmm's 83.
+        """
         L = self.ensemble_size
         # a list, not a slice of the ModuleList: slicing builds a new ModuleList at every call,
         # a tenth of a small model's call (Pendulum's 5 x 2 x 64, 80 rows: 759 -> 673 us)
@@ -577,8 +590,11 @@ class EnsembleWorldModel(TensorDictModuleBase):
             # a batched matmul with a small inner dimension was 3x slower (measured)
             n = x.shape[0]
             w, b = self._stacked_first_layer(dtype)
-            x = torch.addmm(b, x.to(dtype), w).view(n, L, -1).transpose(0, 1).contiguous()
-            x = self._activate_(x, silu_kernel)
+            if silu_kernel:  # (L, 1, h) -> one row of L * h: every row of the (N, L * h) output
+                h = _silu_kernel.bias_silu_(torch.mm(x.to(dtype), w), self._kernel_bias(hidden[0], 1).view(-1))
+            else:
+                h = self._activate_(torch.addmm(b, x.to(dtype), w))
+            x = h.view(n, L, -1).transpose(0, 1).contiguous()
             hidden = hidden[1:]
         n = x.shape[1]
         # (bf16 bmm kernels are not batch-parallel in the same way: splitting does not pay)
@@ -586,7 +602,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
         x = x.reshape(L * k, n // k, x.shape[-1])
         for layer in hidden:
             w, b = self._inference_weights(layer, dtype, k, None)
-            x = self._activate_(torch.baddbmm(b, x.to(dtype), w), silu_kernel)
+            if silu_kernel:
+                x = _silu_kernel.bias_silu_(torch.bmm(x.to(dtype), w), self._kernel_bias(layer, k))
+            else:
+                x = self._activate_(torch.baddbmm(b, x.to(dtype), w))
         # All layers in reduced precision when asked (matmuls accumulate in fp32; the outputs
         # round to bf16): test_bf16_ranking_matches_fp32 checks that sigma-driven returns keep
         # their ranking (Spearman >= 0.95) on a trained model.

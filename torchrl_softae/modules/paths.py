@@ -47,23 +47,24 @@ def cache_path() -> Path:
 _RANKING_FLAGS = ("avx2", "fma", "avx512f", "avx512bw", "avx512_bf16", "amx_bf16", "sve", "bf16", "i8mm")
 
 
-def cpu_key(info: dict[str, str], silu_isa: str | None) -> str:
+def cpu_key(info: dict[str, str], silu_tag: str | None) -> str:
     """The CPU as the cache key names it, from its ``/proc/cpuinfo`` fields
     (:func:`~torchrl_softae.modules.precision.cpu_info`). The model name alone is not enough:
     virtual machines of two kinds both report "AMD EPYC", one with AVX-512 and one with AVX2 only,
     and a choice measured on one can be 1.8x slower on the other. So the key also has the family,
     model and the instruction sets of :data:`_RANKING_FLAGS`, and which instruction set the
-    compiled SiLU runs on (``silu_isa``: a rebuilt kernel may rank differently). ARM CPUs list no
-    model name (:func:`~torchrl_softae.modules.precision.cpu_name` names them by implementer and
-    part), family or model."""
+    compiled SiLU runs on and its revision (``silu_tag``, :func:`.silu_kernel.cache_tag`: a rebuilt
+    kernel may rank differently). ARM CPUs list no model name
+    (:func:`~torchrl_softae.modules.precision.cpu_name` names them by implementer and part), family
+    or model."""
     flags = flags_of(info)
     isa = "+".join(f for f in _RANKING_FLAGS if f in flags) or "no listed ISA"
     return (f"{cpu_name(info)}|family {info.get('cpu family', '?')} model {info.get('model', '?')}|{isa}|"
-            f"SiLU kernel {silu_isa or 'not built'}")
+            f"SiLU kernel {silu_tag or 'not built'}")
 
 
 def _machine() -> str:
-    return f"{cpu_key(cpu_info(), silu_kernel.isa())}|torch {torch.__version__}|{torch.get_num_threads()} threads"
+    return f"{cpu_key(cpu_info(), silu_kernel.cache_tag())}|torch {torch.__version__}|{torch.get_num_threads()} threads"
 
 
 #: interleaved rounds per candidate; each round repeats a call until it has run this long
