@@ -373,8 +373,10 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10,
 
 
 #: the ops that run the network's layers on the inference paths (the rest is the work between them)
+#: (``aten::mm`` + ``bias_silu_``: the first layer and the hidden layers of ``bmm-silu-kernel``)
 NETWORK_OPS = ("mkldnn::_convolution_pointwise", "aten::convolution", "aten::mkldnn_convolution",
-               "aten::bmm", "aten::baddbmm", "aten::addmm", "aten::silu_", "torchrl_softae::silu_")
+               "aten::bmm", "aten::baddbmm", "aten::addmm", "aten::mm", "aten::silu_", "torchrl_softae::silu_",
+               "torchrl_softae::bias_silu_")
 
 
 def contender_precision(key: str) -> str:
