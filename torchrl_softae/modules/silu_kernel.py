@@ -75,6 +75,7 @@ def bias_silu_(x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
             ``x[g]``'s ``N`` rows (a 1-D bias to every row of every group).
 
     Where the kernel does not run (see :func:`silu_`), torch's ops give the same result.
+    Inference only: no autograd.
     """
     if x.dim() == 2:
         x3 = x.unsqueeze(0)
@@ -83,7 +84,7 @@ def bias_silu_(x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
     else:
         raise ValueError(f"bias_silu_: x of shape {tuple(x.shape)}, expected (G, N, C) or (N, C)")
     groups, _, cols = x3.shape
-    rows_of_bias = bias.reshape(-1, cols) if bias.numel() % cols == 0 else None
+    rows_of_bias = bias.reshape(-1, cols) if cols > 0 and bias.numel() % cols == 0 else None
     if bias.dtype != torch.float32 or rows_of_bias is None or rows_of_bias.shape[0] not in (1, groups):
         raise ValueError(f"bias_silu_: bias {tuple(bias.shape)} {bias.dtype}, expected fp32 with {cols} values "
                          f"per row for {groups} group(s) (or one row for all)")
