@@ -8,10 +8,12 @@
  * torch's. bf16 results on AVX-512 use a cheaper form whose fp32 value is within 1e-4 relative
  * (a degree-4 polynomial, a 14-bit reciprocal instead of the division): a bf16 ulp is 4e-3-8e-3
  * relative, so a result differs from torch's in at most one ulp, where the exact value lies next
- * to a rounding boundary; the division alone cost about as much as the rest of the kernel.
+ * to a rounding boundary. In a loop over values in L1 on one AMX Xeon core it runs at 4.5
+ * Gvalues/s against 3.3 for the exact form.
  * The bias (fp32, one value per column) is added in fp32 before the activation: a batched matmul
  * without its bias term plus this pass replaces torch's baddbmm, which copies the broadcast bias
- * into its output before the GEMM (a third of a bf16 layer at 206 rows on an AMX CPU).
+ * into its output before the GEMM (110 against 83 us for a bf16 hidden layer at 206 rows on an
+ * AMX CPU).
  *
  * Built at install time as the optional extension torchrl_softae.modules._silu (pyproject.toml);
  * where it does not build, or where it is not faster, the ensemble uses torch's SiLU: the inference

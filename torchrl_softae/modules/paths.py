@@ -5,7 +5,7 @@ Which is faster depends on the CPU, not on its vendor (AMD EPYC without AMX: one
 beats MKL's AVX2 path; Intel with AMX: MKL's fp32 GEMM beats oneDNN's), so each choice is timed
 once on the real shapes at first use and cached for the process and on disk
 (``$TORCHRL_SOFTAE_CACHE/paths.json``, keyed by CPU model and instruction sets, the compiled
-SiLU's instruction set, torch version, thread count, the candidates and how they were timed), so
+SiLU's instruction set and revision, torch version, thread count, the candidates and how they were timed), so
 a resumed run on the same kind of machine makes the same choice as the run it resumes. Each
 candidate is timed in 5 interleaved rounds of at least 2 ms and judged by its best round: on a
 shared host, interference only ever adds time.
