@@ -86,7 +86,7 @@ from torchrl_softae import keep_freed_memory
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
 from torchrl_softae.modules.ensemble import ensemble_std
-from torchrl_softae.modules import moments_kernel, silu_kernel
+from torchrl_softae.modules import amx_network, moments_kernel, silu_kernel
 from torchrl_softae.modules.precision import (
     cpu_flags, cpu_info, cpu_name, fast_bf16_available, onednn_bf16_available, resolve_planning_dtype)
 
@@ -373,10 +373,11 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10,
 
 
 #: the ops that run the network's layers on the inference paths (the rest is the work between them)
-#: (``aten::mm`` + ``bias_silu_``: the first layer and the hidden layers of ``bmm-silu-kernel``)
+#: (``aten::mm`` + ``bias_silu_``: the first layer and the hidden layers of ``bmm-silu-kernel``;
+#: ``amx_network``: the whole network of ``amx-network`` in one call)
 NETWORK_OPS = ("mkldnn::_convolution_pointwise", "aten::convolution", "aten::mkldnn_convolution",
                "aten::bmm", "aten::baddbmm", "aten::addmm", "aten::mm", "aten::silu_", "torchrl_softae::silu_",
-               "torchrl_softae::bias_silu_")
+               "torchrl_softae::bias_silu_", "torchrl_softae::amx_network")
 
 
 def contender_precision(key: str) -> str:
@@ -641,7 +642,8 @@ def main():
     print(f"# planning_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; allocator: {allocator}")
     print(f"compiled SiLU kernel: {silu_kernel.isa() or 'not built (torch SiLU only)'}; one-pass moments kernel: "
-          f"{moments_kernel.isa() or 'no (not built, or no AVX2: torch ops)'}", flush=True)
+          f"{moments_kernel.isa() or 'no (not built, or no AVX2: torch ops)'}; AMX network kernel: "
+          f"{'yes' if amx_network.available() else 'no (' + amx_network.why_not() + ')'}", flush=True)
     if "bf16" not in precisions:
         print("bf16 contenders skipped: this CPU has no native bf16 (AMX-BF16, AVX512-BF16); precision='auto' plans "
               "in fp32 here and no bf16 target applies (--force-bf16 times torch's emulation anyway)", flush=True)
@@ -653,6 +655,7 @@ def main():
         have_mbrl = False
         print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} ({MBRL_INSTALL})")
     results = {"cpu": cpu, "silu_kernel_isa": silu_kernel.isa(), "moments_kernel": moments_kernel.available(),
+               "amx_network_kernel": amx_network.available(),
                "moments_kernel_isa": moments_kernel.isa(),
                "threads": args.threads, "allocator": allocator, "precisions": list(precisions),
                "repeats": repeats, "rows": []}

@@ -6,7 +6,7 @@ from tensordict import TensorDict
 
 from torchrl_softae.modules import EnsembleWorldModel, ensemble_std
 from torchrl_softae.modules import ensemble as ensemble_module
-from torchrl_softae.modules import moments_kernel, silu_kernel
+from torchrl_softae.modules import amx_network, moments_kernel, silu_kernel
 from torchrl_softae.modules.precision import onednn_bf16_available
 from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 
@@ -194,8 +194,11 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
         monkeypatch.setattr(paths, "_MEMORY", {})  # a new process reads the disk: the same choice
         model._path_memo.clear()
         assert model._inference_path(torch.randn(400, 8), torch.float32, None) == first
-        usable = model.available_inference_paths()
-        assert usable == (paths.INFERENCE_PATHS if silu_kernel.available() else ("conv", "conv-fused", "bmm"))
+        expected = ("conv", "conv-fused", "bmm") + (("conv-silu-kernel", "bmm-silu-kernel") if silu_kernel.available()
+                                                    else ()) + (("amx-network",) if amx_network.available() else ())
+        assert model.available_inference_paths() == expected
+        usable = model.available_inference_paths(torch.float32)  # amx-network is bf16 only
+        assert usable == tuple(p for p in expected if p != "amx-network")
         for forced in usable:
             monkeypatch.setenv("SOFTAE_INFERENCE_PATH", forced)
             assert model._inference_path(x, torch.float32, None) == forced
@@ -210,6 +213,61 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
     relu.inference_path = "conv-silu-kernel"
     with torch.no_grad(), pytest.raises(RuntimeError, match="'conv-silu-kernel' needs nn.SiLU"):
         relu.network(x)
+
+
+def test_amx_weights_are_packed_as_tiles_of_input_pairs():
+    """The AMX kernel's layout (csrc/amx_network.c), checked element by element on any CPU: tile
+    (nb, kb) of member l holds W[l, 32 kb + 2 r + t, 16 nb + j] at [r, 2 j + t]; the padding to
+    multiples of 32 inputs and outputs is zeros, in the weight and the bias."""
+    torch.manual_seed(0)
+    w, b = torch.randn(2, 40, 50), torch.randn(2, 50)
+    packed, bias = amx_network.pack_layer(w, b)
+    assert packed.shape == (2, 4, 2, 16, 32) and packed.dtype == torch.bfloat16
+    assert bias.shape == (2, 64) and bias.dtype == torch.float32
+    for l, nb, kb, r, j, t in [(0, 0, 0, 0, 0, 0), (1, 2, 1, 3, 5, 1), (0, 3, 0, 15, 1, 1), (1, 1, 1, 3, 15, 0)]:
+        assert packed[l, nb, kb, r, 2 * j + t] == w[l, 32 * kb + 2 * r + t, 16 * nb + j].to(torch.bfloat16)
+    assert packed[:, :, 1, 4:].abs().sum() == 0  # inputs 40..63
+    assert packed[:, 3, :, :, 4:].abs().sum() == 0  # outputs 50..63 (block 3 holds 48..63)
+    torch.testing.assert_close(bias[:, :50], b)
+    assert bias[:, 50:].abs().sum() == 0
+
+
+@pytest.mark.skipif(not amx_network.available(), reason=f"the AMX network kernel does not run here: {amx_network.why_not()}")
+def test_amx_network_computes_the_bf16_network_on_every_row_count():
+    """The whole network in one AMX call against torch's bf16 layers (bf16 matmuls, fp32 bias and
+    SiLU, activations rounded to bf16): within a few bf16 roundings of a hidden activation, on
+    row counts around the kernel's 16- and 32-row tiles, one thread and two; the model takes it
+    when forced, and refuses it in fp32 with one line naming what it needs."""
+    torch.manual_seed(0)
+    model = EnsembleWorldModel(7, 3, num_cells=64, depth=3).eval()  # 10 inputs, 14 outputs: padded
+    model.planning_dtype = torch.bfloat16
+    threads = torch.get_num_threads()
+    try:
+        with torch.no_grad():
+            for n, t in [(1, 1), (16, 2), (17, 2), (33, 1), (70, 2), (300, 2)]:
+                torch.set_num_threads(t)
+                x = torch.randn(n, 10)
+                h = x.to(torch.bfloat16)
+                for i, layer in enumerate(model.layers):
+                    y = torch.einsum("nk,lkm->lnm" if h.dim() == 2 else "lnk,lkm->lnm", h.float(),
+                                     layer.weight.to(torch.bfloat16).float()) + layer.bias.float()
+                    h = torch.nn.functional.silu(y).to(torch.bfloat16) if i < len(model.layers) - 1 else y
+                out = model._run_path("amx-network", x, torch.bfloat16, None)
+                assert out.shape == (5, n, 14) and out.dtype == torch.float32
+                torch.testing.assert_close(out, h, rtol=0.02, atol=0.02)
+                means = model._run_path("amx-network", x, torch.bfloat16, 7)  # the mean head alone
+                torch.testing.assert_close(means, out[..., :7], rtol=0, atol=0)
+    finally:
+        torch.set_num_threads(threads)
+    model.inference_path = "amx-network"
+    x = torch.randn(40, 10)
+    with torch.no_grad():
+        mu_amx = model.network(x)[0]
+        model.inference_path = "bmm"
+        torch.testing.assert_close(mu_amx, model.network(x)[0], rtol=0.05, atol=0.05)
+        model.inference_path, model.planning_dtype = "amx-network", None
+        with pytest.raises(RuntimeError, match="'amx-network' runs bf16 with nn.SiLU on an AMX CPU: got torch.float32"):
+            model.network(x)
 
 
 def test_the_cache_key_tells_apart_machines_with_the_same_model_name():

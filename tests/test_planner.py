@@ -127,12 +127,16 @@ def test_bf16_ranking_matches_fp32(path):
     if path not in tenv.base_env.world_model.available_inference_paths(torch.bfloat16):
         pytest.skip(f"{path} does not run in bf16 here (the compiled SiLU not built, or conv-fused without oneDNN's "
                     "bf16 convolution: test_ensemble checks the error)")
-    tenv.base_env.world_model.inference_path = path  # every kernel path keeps the ranking
+    model = tenv.base_env.world_model
     fp32 = ICEMPlanner(tenv, planning_horizon=5)
     bf16 = ICEMPlanner(tenv, planning_horizon=5, precision="bf16")
     obs = TensorDict({"observation": torch.rand(1, 3) * 2 - 1}, [1])
     acts = torch.rand(1, 300, 5, 5) * 2 - 1
+    # every kernel path keeps the ranking (the fp32 reference on the same path where it runs in fp32;
+    # amx-network is bf16 only)
+    model.inference_path = path if path in model.available_inference_paths(torch.float32) else "auto"
     r32 = fp32.evaluate(obs, acts)
+    model.inference_path = path
     r16 = bf16.evaluate(obs, acts)
     assert tenv.base_env.world_model.planning_dtype is None  # the env restored its own model
     assert not torch.equal(r32, r16)  # the reduced-precision path really ran

@@ -26,6 +26,7 @@ from torch import nn
 from torch.nn import functional as F
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
+from torchrl_softae.modules import amx_network as _amx_network
 from torchrl_softae.modules import moments_kernel as _moments_kernel
 from torchrl_softae.modules import paths
 from torchrl_softae.modules import silu_kernel as _silu_kernel
@@ -389,7 +390,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
     def network_output(self, x: torch.Tensor, with_logvar: bool = True) -> torch.Tensor:
         """Raw ensemble on normalized inputs: the last layer's output ``(L, N, C)`` as the
         inference path leaves it (in the planning dtype, possibly a strided view of the layer's
-        buffer). Columns ``[:d_s]`` are the normalized delta means, ``[d_s:]`` the raw
+        buffer; fp32 from ``amx-network``, which does not round its last layer). Columns ``[:d_s]`` are the normalized delta means, ``[d_s:]`` the raw
         log-variances (when probabilistic and ``with_logvar``). Every prediction goes through
         here: :meth:`network`, :meth:`predict_members` and :meth:`predict_moments`."""
         d = self.observation_dim
@@ -410,15 +411,19 @@ class EnsembleWorldModel(TensorDictModuleBase):
 
     def available_inference_paths(self, dtype: torch.dtype | None = None) -> tuple[str, ...]:
         """The inference paths this model can run here: the compiled-SiLU ones need ``nn.SiLU`` and
-        the kernel built (:mod:`.silu_kernel`). With ``dtype`` (the hidden layers' dtype), only
-        those that run in it: ``conv-fused`` also needs an activation oneDNN fuses and oneDNN's own
-        convolution in ``dtype`` (bf16 needs AVX512-BW/VL/DQ or AVX-NE-CONVERT)."""
-        usable = INFERENCE_PATHS if self._silu_kernel_applies() else tuple(
-            p for p in INFERENCE_PATHS if not p.endswith("-silu-kernel"))
+        the kernel built (:mod:`.silu_kernel`), ``amx-network`` ``nn.SiLU`` and a CPU that runs
+        :mod:`.amx_network`. With ``dtype`` (the hidden layers' dtype), only those that run in it:
+        ``conv-fused`` also needs an activation oneDNN fuses and oneDNN's own convolution in
+        ``dtype`` (bf16 needs AVX512-BW/VL/DQ or AVX-NE-CONVERT); ``amx-network`` is bf16 only."""
+        silu = type(self.activation) is nn.SiLU
+        usable = tuple(p for p in INFERENCE_PATHS
+                       if (not p.endswith("-silu-kernel") or self._silu_kernel_applies())
+                       and (p != "amx-network" or (silu and _amx_network.available())))
         if dtype is None:
             return usable
         return tuple(p for p in usable
-                     if p != "conv-fused" or (self._fused_activation() is not None and _onednn_runs(dtype)))
+                     if (p != "conv-fused" or (self._fused_activation() is not None and _onednn_runs(dtype)))
+                     and (p != "amx-network" or dtype == torch.bfloat16))
 
     def _inference_path(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> str:
         """Grouped convolutions (oneDNN, CPU only) or batched matmuls for a shared ``(N, in)`` input."""
@@ -426,6 +431,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
             return "bmm"
         forced = self.inference_path if self.inference_path != "auto" else os.environ.get("SOFTAE_INFERENCE_PATH", "auto")
         if forced in INFERENCE_PATHS:
+            if forced == "amx-network" and forced not in self.available_inference_paths(dtype):
+                raise RuntimeError(f"inference path 'amx-network' runs bf16 with nn.SiLU on an AMX CPU: got {dtype}, "
+                                   f"activation {type(self.activation).__name__}, "
+                                   f"{_amx_network.why_not() or 'AMX available'}")
             if forced not in self.available_inference_paths():
                 raise RuntimeError(f"inference path {forced!r} needs nn.SiLU and the compiled kernel "
                                    f"(activation {type(self.activation).__name__}, kernel built: {_silu_kernel.available()})")
@@ -451,6 +460,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
     def _run_path(self, path: str, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
         """The network on a shared ``(N, in)`` input (or ``bmm`` on ``(L, N, in)``) by inference ``path``."""
         silu_kernel = path.endswith("-silu-kernel")
+        if path == "amx-network":
+            return self._network_amx(x, cols)
         if path.startswith("conv"):
             return self._network_grouped_conv(x, dtype, cols, fused=path == "conv-fused", silu_kernel=silu_kernel)
         return self._network_bmm(x, dtype, cols, silu_kernel=silu_kernel)
@@ -564,6 +575,17 @@ class EnsembleWorldModel(TensorDictModuleBase):
             return w, b.reshape(L * o).to(dtype).contiguous()
 
         return self._cached(layer, ("conv", dtype, cols, bucket), build)
+
+    def _network_amx(self, x: torch.Tensor, cols: int | None) -> torch.Tensor:
+        """Inference on a shared ``(N, in)`` input in one call of :mod:`.amx_network`: every
+        member's rows through all layers in AMX tiles, bf16 with fp32 accumulation, the SiLU fused
+        into each hidden layer. Returns ``(L, N, cols or out)`` in fp32 (the last layer is not
+        rounded to bf16)."""
+        *hidden, last = self.layers
+        packed = [self._cached(layer, ("amx", None), _amx_network.pack_layer) for layer in hidden]
+        packed.append(self._cached(last, ("amx", cols), lambda w, b: _amx_network.pack_layer(
+            w if cols is None else w[..., :cols], b if cols is None else b[..., :cols])))
+        return _amx_network.forward(x.float(), packed, cols or last.out_features)
 
     def _kernel_bias(self, layer: EnsembleLinear, k: int) -> torch.Tensor:
         """``layer``'s bias for :func:`~.silu_kernel.bias_silu_`, fp32 (the kernel adds it before

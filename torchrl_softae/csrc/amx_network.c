@@ -1,0 +1,371 @@
+/* The ensemble's whole network in one call on a CPU with AMX: every layer of every member in bf16
+ * tiles (TDPBF16PS, fp32 accumulation), each hidden layer's bias and SiLU applied to its tiles
+ * while they are still in L1, the last layer written in fp32.
+ *
+ * Why: on the AMX Xeon a bf16 network call at 206 rows per member (one-particle planning) took
+ * 870-920 us in five oneDNN or MKL calls plus a SiLU pass per hidden layer, a fifth of the bf16
+ * GEMM peak: each call reads and writes its layer's whole output, and the small first (70 inputs)
+ * and last (116 outputs) layers run far from the peak. Here a work unit is one member's block of
+ * 32 rows (two 16-row tiles) carried through all layers: its activations (32 x 256 bf16, 16 KiB)
+ * never leave L1, the member's weights (0.5 MiB in bf16) stay in L2, and there is one OpenMP
+ * fork per network call instead of one per layer.
+ *
+ * Layout (the Python side packs it, torchrl_softae/modules/amx_network.py):
+ *   x      (N, d_in) fp32, row-major: the normalized input every member shares;
+ *   weight (L, Mp / 16, Kp / 32, 16, 32) bf16 per layer: for output block nb and input block kb,
+ *          one 16 x 32 tile in AMX's pair-interleaved (VNNI) form, element [r][2 j + t] being
+ *          W[32 kb + 2 r + t][16 nb + j]; Kp, Mp: in and out features padded with zeros to
+ *          multiples of 32 (a layer's Kp is the previous layer's Mp);
+ *   bias   (L, Mp) fp32 per layer (zeros in the padding: padded columns stay silu(0) = 0);
+ *   out    (L, N, C) fp32, the last layer's first C outputs plus its bias.
+ *
+ * Built at install time as the optional extension torchrl_softae.modules._amx_network
+ * (pyproject.toml); it runs only where the CPU has AMX-TILE, AMX-BF16 and AVX512-BF16 and Linux
+ * grants the tile state (arch_prctl), else available() is False and the ensemble never offers the
+ * path. Like every inference path it is a candidate the ensemble measures, never assumed faster.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+#if defined(__x86_64__) && defined(__GNUC__) && defined(__linux__)
+#include <cpuid.h>
+#include <immintrin.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+#define SOFTAE_AMX 1
+#include "silu_bf16grade.h"
+#endif
+
+#define UNIT_ROWS 32  /* rows of one work unit: two 16-row tiles */
+#define MAX_LAYERS 16
+#define TILE_ELEMS 512 /* bf16 values in one 16 x 32 weight tile */
+
+typedef struct {
+    int layers;
+    int64_t n, d_in, out_cols, members;
+    const float *x;
+    float *out;
+    const uint16_t *weight[MAX_LAYERS];
+    const float *bias[MAX_LAYERS];
+    int64_t kp[MAX_LAYERS], mp[MAX_LAYERS];
+} network;
+
+static int AVAILABLE = 0;      /* the CPU has the instructions and Linux granted the tile state */
+static const char *WHY_NOT = "not an x86-64 Linux build";
+
+#ifdef SOFTAE_AMX
+#define AMX __attribute__((target("amx-tile,amx-bf16,avx512f,avx512bw,avx512vl,avx512bf16")))
+#define AVX512 __attribute__((target("avx512f,avx512bw,avx512vl,avx512bf16")))
+
+typedef struct __attribute__((aligned(64))) {
+    uint8_t palette, start_row, reserved[14];
+    uint16_t colsb[16];
+    uint8_t rows[16];
+} tile_config;
+
+/* tiles 0-3: fp32 accumulators of a 32 x 32 output block (2 x 2 tiles of 16 x 16); 4-5: two
+ * 16-row input tiles; 6-7: two weight tiles (32 inputs x 16 outputs each). All 16 x 64 bytes. */
+AMX static void configure_tiles(void) {
+    tile_config cfg;
+    memset(&cfg, 0, sizeof(cfg));
+    cfg.palette = 1;
+    for (int t = 0; t < 8; t++) {
+        cfg.rows[t] = 16;
+        cfg.colsb[t] = 64;
+    }
+    _tile_loadconfig(&cfg);
+}
+
+/* c (32 x 32 fp32, row stride 32) = a (rows x kp bf16) @ the two weight column blocks w0, w1
+ * (kb_count tiles each); `two`: both 16-row tiles of a, else the first only */
+AMX static void block(const uint16_t *a, int64_t kp, const uint16_t *w0, const uint16_t *w1, int64_t kb_count,
+                      int two, float *c) {
+    const int64_t stride = kp * 2; /* bytes per row of a */
+    _tile_zero(0);
+    _tile_zero(1);
+    if (two) {
+        _tile_zero(2);
+        _tile_zero(3);
+        for (int64_t kb = 0; kb < kb_count; kb++) {
+            _tile_loadd(4, a + kb * 32, stride);
+            _tile_loadd(5, a + 16 * kp + kb * 32, stride);
+            _tile_loadd(6, w0 + kb * TILE_ELEMS, 64);
+            _tile_loadd(7, w1 + kb * TILE_ELEMS, 64);
+            _tile_dpbf16ps(0, 4, 6);
+            _tile_dpbf16ps(1, 4, 7);
+            _tile_dpbf16ps(2, 5, 6);
+            _tile_dpbf16ps(3, 5, 7);
+        }
+        _tile_stored(2, c + 16 * 32, 128);
+        _tile_stored(3, c + 16 * 32 + 16, 128);
+    } else {
+        for (int64_t kb = 0; kb < kb_count; kb++) {
+            _tile_loadd(4, a + kb * 32, stride);
+            _tile_loadd(6, w0 + kb * TILE_ELEMS, 64);
+            _tile_loadd(7, w1 + kb * TILE_ELEMS, 64);
+            _tile_dpbf16ps(0, 4, 6);
+            _tile_dpbf16ps(1, 4, 7);
+        }
+    }
+    _tile_stored(0, c, 128);
+    _tile_stored(1, c + 16, 128);
+}
+
+static inline __mmask16 first(int64_t k) { return k <= 0 ? 0 : k >= 16 ? 0xffff : (__mmask16)((1u << k) - 1u); }
+
+/* a hidden layer's epilogue: dst[r][0:32] = bf16(silu(c[r] + bias)) for r < rows */
+AVX512 static void epilogue_silu(const float *c, const float *bias, uint16_t *dst, int64_t dst_stride, int rows) {
+    const __m512 b0 = _mm512_loadu_ps(bias), b1 = _mm512_loadu_ps(bias + 16);
+    for (int r = 0; r < rows; r++) {
+        __m512 y0 = silu_bf16grade_avx512(_mm512_add_ps(_mm512_loadu_ps(c + 32 * r), b0));
+        __m512 y1 = silu_bf16grade_avx512(_mm512_add_ps(_mm512_loadu_ps(c + 32 * r + 16), b1));
+        _mm512_storeu_si512(dst + r * dst_stride, (__m512i)_mm512_cvtne2ps_pbh(y1, y0));
+    }
+}
+
+/* the last layer's epilogue: out[r][col0 + j] = c[r][j] + bias[j] for r < rows, col0 + j < cols */
+AVX512 static void epilogue_out(const float *c, const float *bias, float *out, int64_t cols, int64_t col0, int rows) {
+    const __mmask16 m0 = first(cols - col0), m1 = first(cols - col0 - 16);
+    const __m512 b0 = _mm512_loadu_ps(bias), b1 = _mm512_loadu_ps(bias + 16);
+    for (int r = 0; r < rows; r++) {
+        _mm512_mask_storeu_ps(out + r * cols + col0, m0, _mm512_add_ps(_mm512_loadu_ps(c + 32 * r), b0));
+        _mm512_mask_storeu_ps(out + r * cols + col0 + 16, m1, _mm512_add_ps(_mm512_loadu_ps(c + 32 * r + 16), b1));
+    }
+}
+
+/* a (UNIT_ROWS x kp bf16) = x's rows [row0, row0 + rows), zero-padded in columns and rows */
+AVX512 static void load_input(const float *x, int64_t d_in, int64_t row0, int rows, uint16_t *a, int64_t kp) {
+    for (int r = 0; r < UNIT_ROWS; r++) {
+        uint16_t *dst = a + r * kp;
+        if (r >= rows) {
+            memset(dst, 0, (size_t)kp * 2);
+            continue;
+        }
+        const float *src = x + (row0 + r) * d_in;
+        for (int64_t k = 0; k < kp; k += 32) {
+            __m512 v0 = _mm512_maskz_loadu_ps(first(d_in - k), src + k);
+            __m512 v1 = _mm512_maskz_loadu_ps(first(d_in - k - 16), src + k + 16);
+            _mm512_storeu_si512(dst + k, (__m512i)_mm512_cvtne2ps_pbh(v1, v0));
+        }
+    }
+}
+
+/* one member's block of rows through every layer; a, b: two UNIT_ROWS x (widest layer) buffers */
+AMX static void run_unit(const network *net, int64_t member, int64_t row0, uint16_t *a, uint16_t *b, float *c) {
+    const int rows = (int)(net->n - row0 < UNIT_ROWS ? net->n - row0 : UNIT_ROWS);
+    const int two = rows > 16;
+    load_input(net->x, net->d_in, row0, rows, a, net->kp[0]);
+    for (int i = 0; i < net->layers; i++) {
+        const int64_t kp = net->kp[i], mp = net->mp[i], kb_count = kp / 32;
+        const uint16_t *w = net->weight[i] + member * mp * kp;
+        const float *bias = net->bias[i] + member * mp;
+        const int last = i == net->layers - 1;
+        for (int64_t col0 = 0; col0 < mp; col0 += 32) {
+            if (last && col0 >= net->out_cols) break;
+            const uint16_t *w0 = w + (col0 / 16) * kb_count * TILE_ELEMS;
+            block(a, kp, w0, w0 + kb_count * TILE_ELEMS, kb_count, two, c);
+            if (last)
+                epilogue_out(c, bias + col0, net->out + (member * net->n + row0) * net->out_cols, net->out_cols, col0,
+                             rows);
+            else
+                epilogue_silu(c, bias + col0, b + col0, mp, two ? UNIT_ROWS : 16);
+        }
+        uint16_t *t = a;
+        a = b;
+        b = t;
+    }
+}
+
+AMX static void run_units(const network *net, int64_t first_unit, int64_t last_unit, int64_t blocks, int64_t width) {
+    uint16_t *a = aligned_alloc(64, (size_t)(2 * UNIT_ROWS * width * 2));
+    float *c = aligned_alloc(64, UNIT_ROWS * 32 * sizeof(float));
+    if (a == NULL || c == NULL) { /* cannot happen at these sizes; leave the output untouched */
+        free(a);
+        free(c);
+        return;
+    }
+    configure_tiles();
+    for (int64_t u = first_unit; u < last_unit; u++)
+        run_unit(net, u / blocks, (u % blocks) * UNIT_ROWS, a, a + UNIT_ROWS * width, c);
+    _tile_release();
+    free(a);
+    free(c);
+}
+
+static void forward(const network *net, int threads) {
+    int64_t width = 0;
+    for (int i = 0; i < net->layers; i++) {
+        if (net->kp[i] > width) width = net->kp[i];
+        if (net->mp[i] > width) width = net->mp[i];
+    }
+    const int64_t blocks = (net->n + UNIT_ROWS - 1) / UNIT_ROWS, units = net->members * blocks;
+    if (threads > units) threads = (int)units;
+    if (threads <= 1) {
+        run_units(net, 0, units, blocks, width);
+        return;
+    }
+    /* contiguous ranges of units per thread: a thread's units share members, so their weights */
+#pragma omp parallel num_threads(threads)
+    {
+#ifdef _OPENMP
+        const int64_t t = omp_get_thread_num();
+#else
+        const int64_t t = 0;
+#endif
+        run_units(net, units * t / threads, units * (t + 1) / threads, blocks, width);
+    }
+}
+
+static void detect(void) {
+    unsigned eax, ebx, ecx, edx;
+    if (!__get_cpuid_count(7, 0, &eax, &ebx, &ecx, &edx) || !(edx & (1u << 24)) || !(edx & (1u << 22))) {
+        WHY_NOT = "the CPU has no AMX-TILE / AMX-BF16";
+        return;
+    }
+    __builtin_cpu_init();
+    if (!__builtin_cpu_supports("avx512bf16") || !__builtin_cpu_supports("avx512bw") ||
+        !__builtin_cpu_supports("avx512vl")) {
+        WHY_NOT = "the CPU has AMX but not AVX512-BF16/BW/VL";
+        return;
+    }
+    /* Linux hands out the tile data state per process on request (ARCH_REQ_XCOMP_PERM for
+     * XFEATURE_XTILEDATA); torch's oneDNN asks for it too, asking twice is harmless */
+    if (syscall(SYS_arch_prctl, 0x1023, 18) != 0) {
+        WHY_NOT = "Linux did not grant the AMX tile state (arch_prctl ARCH_REQ_XCOMP_PERM)";
+        return;
+    }
+    AVAILABLE = 1;
+    WHY_NOT = NULL;
+}
+#else
+static void forward(const network *net, int threads) {
+    (void)net;
+    (void)threads;
+}
+static void detect(void) {}
+#endif
+
+static int read_addresses(PyObject *seq, int layers, void **out, const char *what) {
+    if (!PyTuple_Check(seq) || PyTuple_GET_SIZE(seq) != layers) {
+        PyErr_Format(PyExc_ValueError, "amx_network.forward: %s must be a tuple of %d values", what, layers);
+        return -1;
+    }
+    for (int i = 0; i < layers; i++) {
+        out[i] = PyLong_AsVoidPtr(PyTuple_GET_ITEM(seq, i));
+        if (out[i] == NULL) {
+            if (!PyErr_Occurred()) PyErr_Format(PyExc_ValueError, "amx_network.forward: %s %d is a null address", what, i);
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static int read_sizes(PyObject *seq, int layers, int64_t *out, const char *what) {
+    if (!PyTuple_Check(seq) || PyTuple_GET_SIZE(seq) != layers) {
+        PyErr_Format(PyExc_ValueError, "amx_network.forward: %s must be a tuple of %d values", what, layers);
+        return -1;
+    }
+    for (int i = 0; i < layers; i++) {
+        out[i] = PyLong_AsLongLong(PyTuple_GET_ITEM(seq, i));
+        if (out[i] == -1 && PyErr_Occurred()) return -1;
+        if (out[i] <= 0 || out[i] % 32) {
+            PyErr_Format(PyExc_ValueError, "amx_network.forward: %s %d is %lld, expected a positive multiple of 32",
+                         what, i, (long long)out[i]);
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static PyObject *py_forward(PyObject *self, PyObject *args) {
+    unsigned long long x, out;
+    long long n, d_in, out_cols, members;
+    PyObject *weights, *biases, *kps, *mps;
+    int threads;
+    network net;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "KLLKLLOOOOi", &x, &n, &d_in, &out, &out_cols, &members, &weights, &biases, &kps,
+                          &mps, &threads))
+        return NULL;
+    if (!AVAILABLE) {
+        PyErr_Format(PyExc_RuntimeError, "amx_network.forward: not available here (%s)", WHY_NOT);
+        return NULL;
+    }
+    if (!PyTuple_Check(weights) || PyTuple_GET_SIZE(weights) < 1 || PyTuple_GET_SIZE(weights) > MAX_LAYERS) {
+        PyErr_Format(PyExc_ValueError, "amx_network.forward: weights must be a tuple of 1 to %d addresses", MAX_LAYERS);
+        return NULL;
+    }
+    net.layers = (int)PyTuple_GET_SIZE(weights);
+    if (read_addresses(weights, net.layers, (void **)net.weight, "weight") < 0 ||
+        read_addresses(biases, net.layers, (void **)net.bias, "bias") < 0 ||
+        read_sizes(kps, net.layers, net.kp, "padded in-features") < 0 ||
+        read_sizes(mps, net.layers, net.mp, "padded out-features") < 0)
+        return NULL;
+    for (int i = 1; i < net.layers; i++)
+        if (net.kp[i] != net.mp[i - 1]) {
+            PyErr_Format(PyExc_ValueError, "amx_network.forward: layer %d takes %lld padded inputs, expected %lld", i,
+                         (long long)net.kp[i], (long long)net.mp[i - 1]);
+            return NULL;
+        }
+    if (n < 0 || members < 1 || d_in < 1 || d_in > net.kp[0] || out_cols < 1 || out_cols > net.mp[net.layers - 1] ||
+        (n > 0 && (x == 0 || out == 0))) {
+        PyErr_Format(PyExc_ValueError,
+                     "amx_network.forward: %lld rows of %lld inputs, %lld outputs, %lld members: expected inputs <= "
+                     "%lld, outputs <= %lld, at least one member and non-null buffers",
+                     n, d_in, out_cols, members, (long long)net.kp[0], (long long)net.mp[net.layers - 1]);
+        return NULL;
+    }
+    if (n == 0) Py_RETURN_NONE;
+    net.n = n;
+    net.d_in = d_in;
+    net.out_cols = out_cols;
+    net.members = members;
+    net.x = (const float *)(uintptr_t)x;
+    net.out = (float *)(uintptr_t)out;
+    Py_BEGIN_ALLOW_THREADS
+    forward(&net, threads < 1 ? 1 : threads);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+static PyObject *py_available(PyObject *self, PyObject *unused) {
+    (void)self;
+    (void)unused;
+    return PyBool_FromLong(AVAILABLE);
+}
+
+static PyObject *py_why_not(PyObject *self, PyObject *unused) {
+    (void)self;
+    (void)unused;
+    if (WHY_NOT == NULL) Py_RETURN_NONE;
+    return PyUnicode_FromString(WHY_NOT);
+}
+
+static PyMethodDef METHODS[] = {
+    {"forward", py_forward, METH_VARARGS,
+     "forward(x, n, d_in, out, out_cols, members, weights, biases, padded_in, padded_out, threads): the whole "
+     "network on n shared rows (addresses of contiguous buffers in the layout of amx_network.c)"},
+    {"available", py_available, METH_NOARGS, "whether this CPU and OS run the kernel"},
+    {"why_not", py_why_not, METH_NOARGS, "why the kernel does not run here (None where it does)"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef MODULE = {PyModuleDef_HEAD_INIT, "_amx_network", "the ensemble's network in AMX tiles (bf16)",
+                                    -1, METHODS, NULL, NULL, NULL, NULL};
+
+/* part of the key of inference-path choices cached on disk (torchrl_softae/modules/paths.py) */
+#define SOFTAE_AMX_NETWORK_REVISION 1
+
+PyMODINIT_FUNC PyInit__amx_network(void) {
+    detect();
+    PyObject *module = PyModule_Create(&MODULE);
+    if (module != NULL && PyModule_AddIntConstant(module, "REVISION", SOFTAE_AMX_NETWORK_REVISION) < 0)
+        Py_CLEAR(module);
+    return module;
+}

@@ -1,0 +1,105 @@
+"""The ensemble's whole network in one AMX call (``torchrl_softae/csrc/amx_network.c``), bf16.
+
+Every member's block of 32 rows runs through all layers in AMX tiles, each hidden layer's bias
+and SiLU applied to its tiles in L1, the last layer written in fp32: one call per network call
+instead of five GEMM calls and four activation passes. Built at install time where a C compiler
+targets AMX (an optional extension); it runs where the CPU has AMX-TILE, AMX-BF16 and
+AVX512-BF16 and Linux grants the tile state (:func:`available`, :func:`why_not`). The ensemble
+offers it as the inference path ``amx-network`` (bf16, SiLU) and takes it only where it
+measures faster (:mod:`~torchrl_softae.modules.paths`).
+"""
+from __future__ import annotations
+
+import torch
+
+from torchrl_softae.modules._profiling import seen_by_profiler
+
+try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
+    from torchrl_softae.modules import _amx_network
+except ImportError:
+    _amx_network = None
+
+__all__ = ["available", "why_not", "cache_tag", "pack_layer", "forward", "PackedLayer"]
+
+#: features are padded to multiples of this (a tile's 32 bf16 inputs; two 16-column tiles)
+_BLOCK = 32
+#: one tile: 16 pairs of inputs x 16 outputs x 2
+_TILE = (16, 32)
+
+
+def available() -> bool:
+    """Whether the extension was built and this CPU and OS run it."""
+    return _amx_network is not None and _amx_network.available()
+
+
+def why_not() -> str | None:
+    """Why :func:`available` is ``False`` (``None`` where it is ``True``)."""
+    if _amx_network is None:
+        return "the extension torchrl_softae.modules._amx_network was not built (no C compiler targeting AMX)"
+    return _amx_network.why_not()
+
+
+def cache_tag() -> str | None:
+    """The kernel as cached measurements name it (``None`` where it does not run)."""
+    return f"revision {_amx_network.REVISION}" if available() else None
+
+
+def _padded(size: int) -> int:
+    return -(-size // _BLOCK) * _BLOCK
+
+
+PackedLayer = tuple[torch.Tensor, torch.Tensor]
+
+
+def pack_layer(weight: torch.Tensor, bias: torch.Tensor) -> PackedLayer:
+    """One ensemble layer in the kernel's layout.
+
+    Args:
+        weight: ``(L, K, M)`` (``x @ weight[l]`` is member ``l``'s layer), any float dtype.
+        bias: ``(L, M)`` or ``(L, 1, M)``.
+
+    Returns:
+        the weight ``(L, Mp / 16, Kp / 32, 16, 32)`` bf16, each ``16 x 32`` block one AMX tile in
+        its pair-interleaved form (``[r, 2 j + t]`` is input ``32 kb + 2 r + t``, output
+        ``16 nb + j``), and the bias ``(L, Mp)`` fp32; ``Kp``, ``Mp``: ``K``, ``M`` padded with
+        zeros to multiples of 32.
+    """
+    members, k, m = weight.shape
+    kp, mp = _padded(k), _padded(m)
+    w = torch.zeros(members, kp, mp, dtype=torch.bfloat16, device=weight.device)
+    w[:, :k, :m] = weight
+    # (L, kb, r, t, nb, j) -> (L, nb, kb, r, j, t): tile (nb, kb) holds W[32 kb + 2 r + t, 16 nb + j]
+    w = w.view(members, kp // 32, 16, 2, mp // 16, 16).permute(0, 4, 1, 2, 5, 3).contiguous()
+    b = torch.zeros(members, mp, dtype=torch.float32, device=weight.device)
+    b[:, :m] = bias.reshape(members, m)
+    return w.view(members, mp // 16, kp // 32, *_TILE), b
+
+
+def forward(x: torch.Tensor, layers: list[PackedLayer], out_features: int) -> torch.Tensor:
+    """The network ``silu(... silu(x W_0 + b_0) ...) W_n + b_n`` of every member on a shared input.
+
+    Args:
+        x: ``(N, K)`` fp32, the input all members share.
+        layers: :func:`pack_layer` of each layer, first to last (every layer but the last
+            followed by SiLU).
+        out_features: the last layer's outputs to return (its first ``C``).
+
+    Returns:
+        ``(L, N, C)`` fp32. Matmuls in bf16 with fp32 accumulation; hidden activations rounded to
+        bf16 (computed to 1e-4 relative before rounding); the output is not rounded.
+    """
+    if not available():
+        raise RuntimeError(f"amx_network.forward: not available here ({why_not()})")
+    if x.dim() != 2 or x.dtype != torch.float32 or x.device.type != "cpu":
+        raise ValueError(f"amx_network.forward: x {tuple(x.shape)} {x.dtype} on {x.device}, expected (N, K) "
+                         "float32 on the CPU")
+    x = x.contiguous()
+    members = layers[0][0].shape[0]
+    out = torch.empty(members, x.shape[0], out_features)
+    with seen_by_profiler("torchrl_softae::amx_network"):
+        _amx_network.forward(
+            x.data_ptr(), x.shape[0], x.shape[1], out.data_ptr(), out_features, members,
+            tuple(w.data_ptr() for w, _ in layers), tuple(b.data_ptr() for _, b in layers),
+            tuple(w.shape[2] * 32 for w, _ in layers), tuple(w.shape[1] * 16 for w, _ in layers),
+            torch.get_num_threads())
+    return out
