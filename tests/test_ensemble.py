@@ -268,6 +268,9 @@ def test_amx_network_computes_the_bf16_network_on_every_row_count():
         model.inference_path, model.planning_dtype = "amx-network", None
         with pytest.raises(RuntimeError, match="'amx-network' runs bf16 with nn.SiLU on an AMX CPU: got torch.float32"):
             model.network(x)
+    w, b = amx_network.pack_layer(torch.randn(5, 10, 32), torch.randn(5, 32))
+    with pytest.raises(ValueError, match=r"layer 0 is \(5, 2, 1, 16, 32\) torch.float32 .* expected pack_layer's"):
+        amx_network.forward(x, [(w.float(), b)], 32)  # the kernel reads raw addresses: never a wrong layout
 
 
 def test_the_cache_key_tells_apart_machines_with_the_same_model_name():

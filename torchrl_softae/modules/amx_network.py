@@ -95,7 +95,13 @@ def forward(x: torch.Tensor, layers: list[PackedLayer], out_features: int) -> to
                          "float32 on the CPU")
     x = x.contiguous()
     members = layers[0][0].shape[0]
-    out = torch.empty(members, x.shape[0], out_features)
+    for i, (w, b) in enumerate(layers):  # the kernel reads raw addresses: only its own layout
+        if not (w.dtype == torch.bfloat16 and w.dim() == 5 and w.shape[0] == members and w.shape[3:] == _TILE
+                and w.is_contiguous() and b.dtype == torch.float32 and b.shape == (members, w.shape[1] * 16)
+                and b.is_contiguous()):
+            raise ValueError(f"amx_network.forward: layer {i} is {tuple(w.shape)} {w.dtype} with bias "
+                             f"{tuple(b.shape)} {b.dtype}, expected pack_layer's output for {members} members")
+    out = torch.empty(members, x.shape[0], out_features, dtype=torch.float32)
     with seen_by_profiler("torchrl_softae::amx_network"):
         _amx_network.forward(
             x.data_ptr(), x.shape[0], x.shape[1], out.data_ptr(), out_features, members,
