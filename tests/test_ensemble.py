@@ -450,6 +450,18 @@ def _fused_moments_match_the_torch_ops(monkeypatch):
     raw = torch.randn(5, 8, 6)
     with pytest.raises(ValueError, match=r"member_index outside \[0, 5\)"):
         kernel(raw, torch.zeros(8, 3), torch.zeros(3), torch.ones(3), 3, torch.full((8,), 5), with_logvar=True)
+    # the aleatoric std in the kernel's pass, at log-variances far outside the bounds too (the
+    # torch ops' soft bounds, then scale * exp(v / 2)): within fp32 rounding of the reference
+    lo, hi = torch.tensor([-10.0, -3.0, -20.0]), torch.tensor([0.5, 2.0, 40.0])
+    raw[..., 3:] = torch.tensor([-300.0, -40.0, -10.0, -1.0, 0.0, 0.4, 3.0, 300.0]).view(1, 8, 1)
+    member, scale = torch.arange(8) % 5, torch.tensor([0.5, 2.0, 1.0])
+    *_, ale = kernel(raw, torch.zeros(8, 3), torch.zeros(3), scale, 3, member, True, (lo, hi))
+    v = raw[member, torch.arange(8), 3:].double()
+    v = hi - torch.nn.functional.softplus(hi - v)
+    want = scale * (0.5 * (lo + torch.nn.functional.softplus(v - lo))).exp()
+    torch.testing.assert_close(ale, want.float(), rtol=2e-6, atol=0)
+    with pytest.raises(ValueError, match="logvar_bounds span 90, expected < 80"):
+        kernel(raw, torch.zeros(8, 3), torch.zeros(3), scale, 3, member, True, (lo, lo + 90))
 
 
 @pytest.mark.skipif(not (silu_kernel.available() and moments_kernel.available()),

@@ -5,7 +5,13 @@
  *     m_l   = (s + loc) + scale * y_l                        member means       (l = 0..L-1)
  *     mu    = 1/L sum_l m_l                                  [mu]
  *     sigma = sqrt(1/(L-1) sum_l (m_l - mu)^2)               [sigma]
- * and, given a member per row (trajectory sampling), that member's m_l and raw log-variance.
+ * and, given a member per row (trajectory sampling), that member's m_l and raw log-variance x, or
+ * its aleatoric std in the model's units (PETS soft bounds [lo, hi] on the log-variance, then
+ * scale * exp(v / 2)):
+ *     v     = lo + softplus(hi - softplus(hi - x) - lo)
+ *     std   = scale * exp(lo / 2) * sqrt(1 + exp(hi - lo) / (1 + exp(hi - x)))
+ * (the same function: exp(softplus(z)) = 1 + exp(z) twice), one exp per value instead of the
+ * nine passes of the torch ops; exp(hi - x) overflowing to inf gives the limit v = lo exactly.
  *
  * Why: done with torch ops this is about ten passes over (L, N, d_s) tensors (the bf16-to-fp32
  * copy, the member means, mean, centring, square, sum, the member gather), each a kernel launch;
@@ -30,6 +36,7 @@ enum { DTYPE_FLOAT32 = 0, DTYPE_BFLOAT16 = 1 };
 #if defined(__x86_64__) && defined(__GNUC__)
 #include <immintrin.h>
 #define SOFTAE_X86 1
+#include "vector_exp.h"
 #endif
 
 typedef struct {
@@ -43,6 +50,9 @@ typedef struct {
     const int64_t *member;    /* (N,) member per row, or NULL */
     float *mu, *sigma;        /* (N, d) outputs */
     float *picked, *picked_logvar; /* (N, d) outputs with member (picked_logvar only with the head) */
+    /* (d,) each, or NULL: picked_logvar receives the aleatoric std, std_scale = scale * exp(lo / 2),
+     * span = exp(hi - lo) */
+    const float *hi, *std_scale, *span;
 } moments_args;
 
 /* members kept in registers (one __m512 each); the Python side reads it as MAX_MEMBERS */
@@ -83,8 +93,16 @@ __attribute__((target("avx512f,avx512bw,avx512vl"))) static void moments_row_avx
         if (a->member != NULL) {
             const int64_t l = a->member[n];
             _mm512_mask_storeu_ps(a->picked + n * d + j, k, m[l]);
-            if (a->logvar_offset >= 0)
-                _mm512_mask_storeu_ps(a->picked_logvar + n * d + j, k, load_avx512(a, l * a->sm + row + a->logvar_offset + j, k));
+            if (a->logvar_offset >= 0) {
+                __m512 x = load_avx512(a, l * a->sm + row + a->logvar_offset + j, k);
+                if (a->hi != NULL) {
+                    const __m512 one = _mm512_set1_ps(1.0f);
+                    __m512 e = exp_avx512(_mm512_sub_ps(_mm512_maskz_loadu_ps(k, a->hi + j), x));
+                    __m512 q = _mm512_div_ps(_mm512_maskz_loadu_ps(k, a->span + j), _mm512_add_ps(one, e));
+                    x = _mm512_mul_ps(_mm512_maskz_loadu_ps(k, a->std_scale + j), _mm512_sqrt_ps(_mm512_add_ps(one, q)));
+                }
+                _mm512_mask_storeu_ps(a->picked_logvar + n * d + j, k, x);
+            }
         }
     }
 }
@@ -114,6 +132,15 @@ __attribute__((target("avx2"))) static inline __m256 load_avx2(const moments_arg
     return _mm256_castsi256_ps(_mm256_slli_epi32(_mm256_cvtepu16_epi32(h), 16));
 }
 
+/* the aleatoric std from the raw log-variance x (see the top of this file); FMA for the exp */
+__attribute__((target("avx2,fma"))) static __m256 aleatoric_std_avx2(const moments_args *a, int64_t j, __m256i k,
+                                                                     __m256 x) {
+    const __m256 one = _mm256_set1_ps(1.0f);
+    __m256 e = exp_avx2(_mm256_sub_ps(_mm256_maskload_ps(a->hi + j, k), x));
+    __m256 q = _mm256_div_ps(_mm256_maskload_ps(a->span + j, k), _mm256_add_ps(one, e));
+    return _mm256_mul_ps(_mm256_maskload_ps(a->std_scale + j, k), _mm256_sqrt_ps(_mm256_add_ps(one, q)));
+}
+
 __attribute__((target("avx2"))) static void moments_row_avx2(const moments_args *a, int64_t n) {
     const int64_t L = a->L, d = a->d, row = n * a->sn;
     const __m256 inv_l = _mm256_set1_ps(1.0f / (float)L), inv_dof = _mm256_set1_ps(1.0f / (float)(L > 1 ? L - 1 : 1));
@@ -138,9 +165,11 @@ __attribute__((target("avx2"))) static void moments_row_avx2(const moments_args 
         if (a->member != NULL) {
             const int64_t l = a->member[n];
             _mm256_maskstore_ps(a->picked + n * d + j, k, m[l]);
-            if (a->logvar_offset >= 0)
-                _mm256_maskstore_ps(a->picked_logvar + n * d + j, k,
-                                    load_avx2(a, l * a->sm + row + a->logvar_offset + j, count, k));
+            if (a->logvar_offset >= 0) {
+                __m256 x = load_avx2(a, l * a->sm + row + a->logvar_offset + j, count, k);
+                if (a->hi != NULL) x = aleatoric_std_avx2(a, j, k, x);
+                _mm256_maskstore_ps(a->picked_logvar + n * d + j, k, x);
+            }
         }
     }
 }
@@ -168,7 +197,7 @@ static void detect(void) { /* the best variant this CPU runs, in the order of VA
 #ifdef SOFTAE_X86
     __builtin_cpu_init();
     /* libgcc's feature bits include the OS check (XCR0) that the AVX state is enabled */
-    VARIANTS[0].supported = __builtin_cpu_supports("avx2");
+    VARIANTS[0].supported = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"); /* every AVX2 CPU so far */
     VARIANTS[1].supported = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw")
                             && __builtin_cpu_supports("avx512vl");
 #endif
@@ -180,12 +209,12 @@ static void detect(void) { /* the best variant this CPU runs, in the order of VA
 #define MIN_PARALLEL_ELEMENTS ((int64_t)32768)
 
 static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
-    unsigned long long y, state, loc, scale, member, mu, sigma, picked, picked_logvar;
+    unsigned long long y, state, loc, scale, member, mu, sigma, picked, picked_logvar, hi, std_scale, span;
     long long sm, sn, L, N, d, logvar_offset;
     int dtype, threads;
     (void)self;
-    if (!PyArg_ParseTuple(args, "KLLiLLLLKKKKKKKKi", &y, &sm, &sn, &dtype, &L, &N, &d, &logvar_offset, &state, &loc,
-                          &scale, &member, &mu, &sigma, &picked, &picked_logvar, &threads))
+    if (!PyArg_ParseTuple(args, "KLLiLLLLKKKKKKKKKKKi", &y, &sm, &sn, &dtype, &L, &N, &d, &logvar_offset, &state, &loc,
+                          &scale, &member, &mu, &sigma, &picked, &picked_logvar, &hi, &std_scale, &span, &threads))
         return NULL;
     if (dtype != DTYPE_FLOAT32 && dtype != DTYPE_BFLOAT16) {
         PyErr_Format(PyExc_ValueError, "ensemble_moments: dtype code %d, expected 0 (float32) or 1 (bfloat16)", dtype);
@@ -196,7 +225,7 @@ static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
         return NULL;
     }
     if (L < 1 || L > MAX_VECTOR_MEMBERS || N < 0 || d < 1 || !y || !state || !loc || !scale || !mu || !sigma || (member && !picked)
-        || (member && logvar_offset >= 0 && !picked_logvar)) {
+        || (member && logvar_offset >= 0 && !picked_logvar) || ((hi || std_scale || span) && !(hi && std_scale && span))) {
         PyErr_Format(PyExc_ValueError, "ensemble_moments: L=%lld (expected 1..%d), N=%lld, d=%lld, or a null address",
                      L, MAX_VECTOR_MEMBERS, N, d);
         return NULL;
@@ -204,7 +233,8 @@ static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
     moments_args a = {(const char *)(uintptr_t)y, sm, sn, dtype, L, d, logvar_offset,
                       (const float *)(uintptr_t)state, (const float *)(uintptr_t)loc, (const float *)(uintptr_t)scale,
                       (const int64_t *)(uintptr_t)member, (float *)(uintptr_t)mu, (float *)(uintptr_t)sigma,
-                      (float *)(uintptr_t)picked, (float *)(uintptr_t)picked_logvar};
+                      (float *)(uintptr_t)picked, (float *)(uintptr_t)picked_logvar, (const float *)(uintptr_t)hi,
+                      (const float *)(uintptr_t)std_scale, (const float *)(uintptr_t)span};
     if (threads < 1) threads = 1;
     const int parallel = threads > 1 && N * L * d >= MIN_PARALLEL_ELEMENTS;
     const row_fn row = VARIANTS[CURRENT].row;
@@ -228,8 +258,9 @@ static PyMethodDef METHODS[] = {
     SOFTAE_ISA_METHODS,
     {"ensemble_moments", ensemble_moments, METH_VARARGS,
      "ensemble_moments(y, member_stride, row_stride, dtype, L, N, d, logvar_offset, state, loc, scale, member, "
-     "mu, sigma, picked, picked_logvar, threads): mu and sigma (and a picked member's mean and raw "
-     "log-variance) of an ensemble's raw output; addresses of contiguous float32 buffers, 0 for none"},
+     "mu, sigma, picked, picked_logvar, hi, std_scale, span, threads): mu and sigma (and a picked member's mean "
+     "and raw log-variance, or with hi, std_scale and span its aleatoric std) of an ensemble's raw output; "
+     "addresses of contiguous float32 buffers, 0 for none"},
     {NULL, NULL, 0, NULL},
 };
 

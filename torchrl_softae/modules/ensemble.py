@@ -770,11 +770,18 @@ class EnsembleWorldModel(TensorDictModuleBase):
         if fused:
             with_logvar = with_aleatoric and self.probabilistic
             out = self.output_normalizer
-            mu, sigma, member_mean, logvar = _moments_kernel.ensemble_moments(
-                raw, obs, out.loc, out.scale, d, member_index, with_logvar)
+            # the bounds and the aleatoric std in the same pass, where the bounds' span allows it
+            bounds = None
+            if with_logvar and bool((self.max_logvar - self.min_logvar).max() < _moments_kernel.MAX_LOGVAR_SPAN):
+                bounds = (self.min_logvar, self.max_logvar)
+            mu, sigma, member_mean, second = _moments_kernel.ensemble_moments(
+                raw, obs, out.loc, out.scale, d, member_index, with_logvar, bounds)
             ale = None
             if with_aleatoric:
-                ale = self._aleatoric_std(self._bound_logvar(logvar)) if with_logvar else torch.zeros_like(mu)
+                if not with_logvar:
+                    ale = torch.zeros_like(mu)
+                else:  # the raw log-variance where the kernel did not bound it
+                    ale = second if bounds is not None else self._aleatoric_std(self._bound_logvar(second))
         else:
             members, ale = self._members_from_output(raw, obs, (obs.shape[0],), with_aleatoric, member_index)
             mu = members.mean(0)

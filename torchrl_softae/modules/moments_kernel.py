@@ -24,9 +24,13 @@ if _moments is not None and not _moments.supported():  # built, but this CPU lac
 #: members the kernel keeps in registers (``MAX_VECTOR_MEMBERS`` in moments.c); 0 without the kernel
 MAX_MEMBERS = 0 if _moments is None else _moments.MAX_MEMBERS
 
-__all__ = ["MAX_MEMBERS", "available", "applies", "ensemble_moments", "isa", "supported_isas", "use_isa"]
+__all__ = ["MAX_MEMBERS", "MAX_LOGVAR_SPAN", "available", "applies", "ensemble_moments", "isa", "supported_isas", "use_isa"]
 
 _DTYPE_CODES = {torch.float32: 0, torch.bfloat16: 1}
+
+
+#: the widest log-variance bounds (max - min) the fused aleatoric std takes: exp(span) stays finite
+MAX_LOGVAR_SPAN = 80.0
 
 
 def available() -> bool:
@@ -50,6 +54,7 @@ def applies(output: torch.Tensor) -> bool:
 def ensemble_moments(
     output: torch.Tensor, state: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor, d: int,
     member_index: torch.Tensor | None = None, with_logvar: bool = False,
+    logvar_bounds: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """Moments of the member means ``m_l = state + loc + scale * output[l, :, :d]``.
 
@@ -60,11 +65,16 @@ def ensemble_moments(
         state: ``(N, d)`` the state in the model's space; loc, scale: ``(d,)`` the output
             normalizer.
         member_index: ``(N,)`` int64, the member each row follows (trajectory sampling), or ``None``.
+        logvar_bounds: ``(min_logvar, max_logvar)``, ``(d,)`` each (the PETS soft bounds): with
+            ``member_index`` and ``with_logvar``, return that member's aleatoric std in the model's
+            units, ``scale * exp(v / 2)`` of its bounded log-variance ``v``, instead of the raw
+            log-variance (one exp per value where the torch ops make nine passes). Needs
+            ``max_logvar - min_logvar <`` :data:`MAX_LOGVAR_SPAN` (else ``exp`` overflows in fp32).
 
     Returns:
         ``mu`` and ``sigma`` ``(N, d)`` [mu, sigma; sigma with Bessel's correction], and with
-        ``member_index`` that member's mean and (with ``with_logvar``) raw log-variance ``(N, d)``,
-        else ``None``. All fp32. Only where :func:`applies` holds.
+        ``member_index`` that member's mean and (with ``with_logvar``) raw log-variance or
+        aleatoric std ``(N, d)``, else ``None``. All fp32. Only where :func:`applies` holds.
     """
     L, n, cols = output.shape
     if cols < (2 * d if with_logvar else d):
@@ -84,10 +94,19 @@ def ensemble_moments(
         member_address = member_index.data_ptr()
         picked = torch.empty(n, d)
         picked_logvar = torch.empty(n, d) if with_logvar else None
+    bounds = (0, 0, 0)
+    if logvar_bounds is not None and picked_logvar is not None:
+        lo, hi = (t.float().reshape(d) for t in logvar_bounds)
+        if not bool((hi - lo).max() < MAX_LOGVAR_SPAN):
+            raise ValueError(f"ensemble_moments: logvar_bounds span {float((hi - lo).max()):.4g}, expected "
+                             f"< {MAX_LOGVAR_SPAN}")
+        # kept alive until the kernel returns: it reads their addresses
+        hi, std_scale, span = hi.contiguous(), (scale * (0.5 * lo).exp()).contiguous(), (hi - lo).exp().contiguous()
+        bounds = (hi.data_ptr(), std_scale.data_ptr(), span.data_ptr())
     with seen_by_profiler("torchrl_softae::ensemble_moments"):
         _moments.ensemble_moments(
             output.data_ptr(), output.stride(0), output.stride(1), _DTYPE_CODES[output.dtype], L, n, d,
             d if with_logvar else -1, state.data_ptr(), loc.data_ptr(), scale.data_ptr(), member_address,
             mu.data_ptr(), sigma.data_ptr(), 0 if picked is None else picked.data_ptr(),
-            0 if picked_logvar is None else picked_logvar.data_ptr(), torch.get_num_threads())
+            0 if picked_logvar is None else picked_logvar.data_ptr(), *bounds, torch.get_num_threads())
     return mu, sigma, picked, picked_logvar
