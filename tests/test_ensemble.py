@@ -1,3 +1,4 @@
+import copy
 import warnings
 
 import pytest
@@ -268,9 +269,18 @@ def test_amx_network_computes_the_bf16_network_on_every_row_count():
         model.inference_path, model.planning_dtype = "amx-network", None
         with pytest.raises(RuntimeError, match="'amx-network' runs bf16 with nn.SiLU on an AMX CPU: got torch.float32"):
             model.network(x)
+        # a copy of packed weights (a deepcopy or pickle of the model carries them) computes with
+        # its own tensors, not with the original's addresses: the original is zeroed before it runs
+        packed = model._amx_packed(None)
+        want = amx_network.forward(x, packed, 14)
+        copied = copy.deepcopy(packed)
+        for w, b in packed.layers:
+            w.zero_(), b.zero_()
+        torch.testing.assert_close(amx_network.forward(x, copied, 14), want, rtol=0, atol=0)
+        assert not torch.equal(amx_network.forward(x, packed, 14), want)  # (the zeroed weights ran)
     w, b = amx_network.pack_layer(torch.randn(5, 10, 32), torch.randn(5, 32))
     with pytest.raises(ValueError, match=r"layer 0 is \(5, 2, 1, 16, 32\) torch.float32 .* expected pack_layer's"):
-        amx_network.forward(x, [(w.float(), b)], 32)  # the kernel reads raw addresses: never a wrong layout
+        amx_network.PackedNetwork([(w.float(), b)])  # the kernel reads raw addresses: never a wrong layout
 
 
 def test_the_cache_key_tells_apart_machines_with_the_same_model_name():
@@ -572,7 +582,7 @@ def test_packed_conv_weights_match(monkeypatch):
     assert not torch.allclose(before, after)
 
 
-@pytest.mark.parametrize("path", ["conv-fused", "bmm"])
+@pytest.mark.parametrize("path", ["conv-fused", "bmm", "amx-network"])
 def test_cached_inference_weights_follow_fused_optimizer_steps_copies_and_moves(path):
     """A fused optimizer step updates the parameters without moving their version counters, and
     ``.to()`` swaps their storage: the cast/packed inference weights must follow both, also for a
@@ -589,8 +599,12 @@ def test_cached_inference_weights_follow_fused_optimizer_steps_copies_and_moves(
             m.clear_inference_cache()
             return cached, m.predict_members(obs, act)[0]
 
+    if path == "amx-network" and not amx_network.available():
+        pytest.skip(f"the AMX network kernel does not run here: {amx_network.why_not()}")
     model = _model().eval()
     model.inference_path = path
+    if path == "amx-network":  # bf16 only
+        model.planning_dtype = torch.bfloat16
     for m in (model, copy.deepcopy(model)):
         m.inference_path = path
         start, _ = cached_and_fresh(m)  # fills the cache

@@ -19,7 +19,7 @@ try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenM
 except ImportError:
     _amx_network = None
 
-__all__ = ["available", "why_not", "cache_tag", "pack_layer", "forward", "PackedLayer"]
+__all__ = ["available", "why_not", "cache_tag", "pack_layer", "forward", "PackedLayer", "PackedNetwork"]
 
 #: features are padded to multiples of this (a tile's 32 bf16 inputs; two 16-column tiles)
 _BLOCK = 32
@@ -75,13 +75,54 @@ def pack_layer(weight: torch.Tensor, bias: torch.Tensor) -> PackedLayer:
     return w.view(members, mp // 16, kp // 32, *_TILE), b
 
 
-def forward(x: torch.Tensor, layers: list[PackedLayer], out_features: int) -> torch.Tensor:
+class PackedNetwork:
+    """Every layer of an ensemble network in the kernel's layout (:func:`pack_layer`), checked
+    once, with the kernel's arguments prepared: a call of :func:`forward` costs no Python per
+    layer (at one-particle planning's 206 rows a network call is about 290 us, and checking and
+    collecting five layers' addresses at every call had cost 23 us of it).
+
+    Args:
+        layers: :func:`pack_layer` of each layer, first to last; every layer but the last is
+            followed by SiLU. The tensors are kept alive here: the kernel reads their addresses.
+    """
+
+    def __init__(self, layers: list[PackedLayer]):
+        if not layers:
+            raise ValueError("amx_network.PackedNetwork: no layers, expected at least one")
+        self.members = layers[0][0].shape[0]
+        for i, (w, b) in enumerate(layers):  # the kernel reads raw addresses: only its own layout
+            if not (w.dtype == torch.bfloat16 and w.dim() == 5 and w.shape[0] == self.members
+                    and w.shape[3:] == _TILE and w.is_contiguous() and w.device.type == "cpu"
+                    and b.dtype == torch.float32 and b.shape == (self.members, w.shape[1] * 16)
+                    and b.is_contiguous()):
+                raise ValueError(f"amx_network.PackedNetwork: layer {i} is {tuple(w.shape)} {w.dtype} with bias "
+                                 f"{tuple(b.shape)} {b.dtype}, expected pack_layer's output for {self.members} "
+                                 "members")
+        for i in range(1, len(layers)):
+            if layers[i][0].shape[2] * 32 != layers[i - 1][0].shape[1] * 16:
+                raise ValueError(f"amx_network.PackedNetwork: layer {i} takes {layers[i][0].shape[2] * 32} padded "
+                                 f"inputs, layer {i - 1} gives {layers[i - 1][0].shape[1] * 16}")
+        self.layers = list(layers)
+        self.in_features = layers[0][0].shape[2] * 32  # padded
+        self.out_features = layers[-1][0].shape[1] * 16  # padded
+        self._arguments = (tuple(w.data_ptr() for w, _ in layers), tuple(b.data_ptr() for _, b in layers),
+                           tuple(w.shape[2] * 32 for w, _ in layers), tuple(w.shape[1] * 16 for w, _ in layers))
+
+    # a copy (deepcopy, pickle) has tensors of its own: its addresses are read from them again,
+    # never carried over from the original
+    def __getstate__(self) -> dict:
+        return {"layers": self.layers}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["layers"])
+
+
+def forward(x: torch.Tensor, network: PackedNetwork, out_features: int) -> torch.Tensor:
     """The network ``silu(... silu(x W_0 + b_0) ...) W_n + b_n`` of every member on a shared input.
 
     Args:
         x: ``(N, K)`` fp32, the input all members share.
-        layers: :func:`pack_layer` of each layer, first to last (every layer but the last
-            followed by SiLU).
+        network: the packed layers (:class:`PackedNetwork`).
         out_features: the last layer's outputs to return (its first ``C``).
 
     Returns:
@@ -94,18 +135,8 @@ def forward(x: torch.Tensor, layers: list[PackedLayer], out_features: int) -> to
         raise ValueError(f"amx_network.forward: x {tuple(x.shape)} {x.dtype} on {x.device}, expected (N, K) "
                          "float32 on the CPU")
     x = x.contiguous()
-    members = layers[0][0].shape[0]
-    for i, (w, b) in enumerate(layers):  # the kernel reads raw addresses: only its own layout
-        if not (w.dtype == torch.bfloat16 and w.dim() == 5 and w.shape[0] == members and w.shape[3:] == _TILE
-                and w.is_contiguous() and b.dtype == torch.float32 and b.shape == (members, w.shape[1] * 16)
-                and b.is_contiguous()):
-            raise ValueError(f"amx_network.forward: layer {i} is {tuple(w.shape)} {w.dtype} with bias "
-                             f"{tuple(b.shape)} {b.dtype}, expected pack_layer's output for {members} members")
-    out = torch.empty(members, x.shape[0], out_features, dtype=torch.float32)
+    out = torch.empty(network.members, x.shape[0], out_features, dtype=torch.float32)
     with seen_by_profiler("torchrl_softae::amx_network"):
-        _amx_network.forward(
-            x.data_ptr(), x.shape[0], x.shape[1], out.data_ptr(), out_features, members,
-            tuple(w.data_ptr() for w, _ in layers), tuple(b.data_ptr() for _, b in layers),
-            tuple(w.shape[2] * 32 for w, _ in layers), tuple(w.shape[1] * 16 for w, _ in layers),
-            torch.get_num_threads())
+        _amx_network.forward(x.data_ptr(), x.shape[0], x.shape[1], out.data_ptr(), out_features, network.members,
+                             *network._arguments, torch.get_num_threads())
     return out
