@@ -23,6 +23,8 @@ reported as median and best, so a noisy machine cannot make one ratio out of one
                     (each of EnsembleWorldModel.available_inference_paths(dtype)) instead of measured at first use
   ...@torch-moments (--compare-moments) the four icem rows with mu and sigma computed by torch ops
                     (EnsembleWorldModel.fused_moments = False) instead of the one-pass kernel
+  ...@torch-randn   (--compare-noise) the four icem rows with every normal draw by torch.randn
+                    (normal_kernel.enabled = False) instead of the counter-based kernel
 
 ``--layer-costs`` also times the arm-sized network as the planner runs it, fp32 and bf16 (its
 ratio bounds bf16/fp32 of a plan), and ONE hidden layer (L=5 members, 256 -> 256) at the planner's row counts
@@ -86,7 +88,7 @@ from torchrl_softae import keep_freed_memory
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
 from torchrl_softae.modules.ensemble import ensemble_std
-from torchrl_softae.modules import amx_network, moments_kernel, silu_kernel
+from torchrl_softae.modules import amx_network, moments_kernel, normal_kernel, silu_kernel
 from torchrl_softae.modules.precision import (
     cpu_flags, cpu_info, cpu_name, fast_bf16_available, onednn_bf16_available, resolve_planning_dtype)
 
@@ -614,6 +616,8 @@ def main():
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--compare-paths", action="store_true",
                    help="also time the icem rows with each inference path fixed (every available one)")
+    p.add_argument("--compare-noise", action="store_true",
+                   help="also time the icem rows with every normal draw by torch.randn instead of the noise kernel")
     p.add_argument("--compare-moments", action="store_true",
                    help="also time the icem rows with mu and sigma by torch ops instead of the one-pass kernel")
     p.add_argument("--layer-costs", action="store_true",
@@ -643,7 +647,9 @@ def main():
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; allocator: {allocator}")
     print(f"compiled SiLU kernel: {silu_kernel.isa() or 'not built (torch SiLU only)'}; one-pass moments kernel: "
           f"{moments_kernel.isa() or 'no (not built, or no AVX2: torch ops)'}; AMX network kernel: "
-          f"{'yes' if amx_network.available() else 'no (' + amx_network.why_not() + ')'}", flush=True)
+          f"{'yes' if amx_network.available() else 'no (' + amx_network.why_not() + ')'}; normal draws: "
+          f"{'counter-based kernel, ' + normal_kernel.isa() if normal_kernel.available() else 'torch.randn'}",
+          flush=True)
     if "bf16" not in precisions:
         print("bf16 contenders skipped: this CPU has no native bf16 (AMX-BF16, AVX512-BF16); precision='auto' plans "
               "in fp32 here and no bf16 target applies (--force-bf16 times torch's emulation anyway)", flush=True)
@@ -655,7 +661,7 @@ def main():
         have_mbrl = False
         print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} ({MBRL_INSTALL})")
     results = {"cpu": cpu, "silu_kernel_isa": silu_kernel.isa(), "moments_kernel": moments_kernel.available(),
-               "amx_network_kernel": amx_network.available(),
+               "amx_network_kernel": amx_network.available(), "normal_kernel_isa": normal_kernel.isa(),
                "moments_kernel_isa": moments_kernel.isa(),
                "threads": args.threads, "allocator": allocator, "precisions": list(precisions),
                "repeats": repeats, "rows": []}
@@ -685,9 +691,16 @@ def main():
                 planners[f"{key}@torch-moments"] = icem_contender(key, sample_env, opt_env, icem)
                 torch_moments.add(f"{key}@torch-moments")
 
+        torch_randn = set()  # contenders whose normal draws are torch.randn's (the noise kernel's baseline)
+        if args.compare_noise and normal_kernel.available():
+            for key in icem_rows:
+                planners[f"{key}@torch-randn"] = icem_contender(key, sample_env, opt_env, icem)
+                torch_randn.add(f"{key}@torch-randn")
+
         def configure(key):  # the model as this contender runs it
             model.inference_path = path_of.get(key, "auto")
             model.fused_moments = key not in torch_moments
+            normal_kernel.enabled = key not in torch_randn
 
         alone = {}  # contender -> its plan's network calls, replayed alone (--network-alone)
         with torch.no_grad(), warnings.catch_warnings():
@@ -720,7 +733,7 @@ def main():
                         alone[key]()
                         times[f"{key}:network"].append(time.perf_counter() - t)
                 pk = peaks(repeats=2, so_far=pk, precisions=precisions)  # between rounds, so a noisy moment cannot set the peak
-        model.inference_path, model.fused_moments = "auto", True
+        model.inference_path, model.fused_moments, normal_kernel.enabled = "auto", True, True
         chosen = sorted({f"{'bf16' if k[0] == torch.bfloat16 else 'fp32'} rows<={k[1]}: {v}"
                          for k, v in model._path_memo.items() if isinstance(v, str)})
         timed.append((name, d_s, d_a, H, model, sample_env, planners, times, chosen, alone))

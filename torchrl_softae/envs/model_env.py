@@ -9,6 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, ModelBasedEnvBase, TransformedEnv
 
+from torchrl_softae.modules import normal_kernel as _normal_kernel
 from torchrl_softae.modules.planners.contract import ActionSequenceEvaluator, PlanningTransform
 from torchrl_softae.modules.ensemble import EnsembleWorldModel, ensemble_std
 from torchrl_softae.modules.precision import resolve_planning_dtype
@@ -195,7 +196,10 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         return mu, sigma, member_mean, ale
 
     def _with_noise(self, nxt, noise_std):
-        return nxt if noise_std is None else nxt + noise_std * self._randn(nxt.shape, nxt)
+        if noise_std is None:
+            return nxt
+        # the counter-based draws where they apply (normal_kernel.enabled), else torch.randn's
+        return _normal_kernel.add_scaled_randn(nxt, noise_std, self._generator)
 
     def _propagate_mean(self, observation, action, eta, member_index, particles=1):
         mu, sigma, _, ale = self._moments(observation, action, particles=particles)

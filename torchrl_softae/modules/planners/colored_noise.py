@@ -12,6 +12,8 @@ import math
 
 import torch
 
+from torchrl_softae.modules import normal_kernel
+
 __all__ = ["colored_noise"]
 
 
@@ -27,7 +29,8 @@ def colored_noise(
     Args:
         exponent (float): spectral exponent beta >= 0.
         shape: output shape ``(..., T)``; every leading index is an independent series.
-        generator: torch generator for reproducibility (on ``device``).
+        generator: torch generator for reproducibility (on ``device``); fp32 draws on the CPU
+            come from :mod:`~torchrl_softae.modules.normal_kernel`, seeded from it.
         device: where the noise is created; default the generator's device (CPU without one).
 
     Returns:
@@ -39,7 +42,7 @@ def colored_noise(
         device = generator.device if generator is not None else torch.device("cpu")
     T = shape[-1]
     if exponent == 0 or T == 1:
-        return torch.randn(shape, generator=generator, dtype=dtype, device=device)
+        return normal_kernel.randn(shape, generator, dtype, device)
     f = torch.fft.rfftfreq(T, dtype=torch.float64)  # a handful of frequencies: computed on the CPU
     f[0] = 1.0 / T  # lowest resolvable frequency instead of the DC singularity
     s = f.pow(-exponent / 2.0)
@@ -49,8 +52,8 @@ def colored_noise(
     sigma = 2.0 * math.sqrt(float(w[1:].square().sum())) / T
     n_f = f.shape[0]
     s = s.to(dtype=dtype, device=device)
-    re = torch.randn((*shape[:-1], n_f), generator=generator, dtype=dtype, device=device) * s
-    im = torch.randn((*shape[:-1], n_f), generator=generator, dtype=dtype, device=device) * s
+    re = normal_kernel.randn((*shape[:-1], n_f), generator, dtype, device) * s
+    im = normal_kernel.randn((*shape[:-1], n_f), generator, dtype, device) * s
     if T % 2 == 0:  # the Nyquist coefficient of a real signal is real
         im[..., -1] = 0.0
         re[..., -1] *= math.sqrt(2.0)

@@ -1,0 +1,90 @@
+"""Counter-based standard normal draws for planning (``torchrl_softae/csrc/normal.c``).
+
+The aleatoric noise of PETS-style propagation and the colored noise of iCEM's candidates are drawn
+at every model step; torch's CPU generator (mt19937, one thread) takes about 2.5 ns per normal
+value, and in a bf16 10-particle arm plan on a CPU with AMX those draws were the largest op after
+the network. Here a value is a pure function of a 64-bit seed and its index (SplitMix64 of the
+counter, Box-Muller), computed on torch's threads, 4-5x faster than ``torch.randn`` on 2 cores;
+the seed is one value drawn from the caller's ``torch.Generator``, so a seeded generator gives a
+seeded stream, as with ``torch.randn`` (but not the same values). Every instruction-set variant
+and every thread count gives the same bits.
+
+Built at install time where a C compiler is present (an optional extension); where it is not
+built, or for tensors it does not take (not fp32 on the CPU), ``torch.randn`` draws instead.
+"""
+from __future__ import annotations
+
+import torch
+
+from torchrl_softae.modules._instruction_sets import instruction_set_functions
+from torchrl_softae.modules._profiling import seen_by_profiler
+
+try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
+    from torchrl_softae.modules import _normal
+except ImportError:
+    _normal = None
+
+__all__ = ["available", "applies", "randn", "add_scaled_randn", "isa", "supported_isas", "use_isa", "enabled"]
+
+#: ``False``: every draw by ``torch.randn`` (its stream), to compare or to reproduce a run made
+#: before the kernel; read at every call
+enabled: bool = True
+
+#: ``"avx512"`` or ``"portable"`` (the same values either way), the ones this CPU runs, a switch
+isa, supported_isas, use_isa = instruction_set_functions(_normal)
+
+
+def available() -> bool:
+    """Whether the extension was built."""
+    return _normal is not None
+
+
+def _cpu_generator(generator: torch.Generator | None) -> bool:
+    return generator is None or generator.device.type == "cpu"
+
+
+def applies(like: torch.Tensor, generator: torch.Generator | None = None) -> bool:
+    """Whether :func:`randn` / :func:`add_scaled_randn` draw with the kernel for tensors like
+    ``like`` (fp32 on the CPU, no autograd) and ``generator`` (a CPU one, or the default): where
+    it was built and :data:`enabled`."""
+    return (enabled and _normal is not None and like.dtype == torch.float32 and like.device.type == "cpu"
+            and not like.requires_grad and _cpu_generator(generator))
+
+
+def _seed(generator: torch.Generator | None) -> int:
+    """The stream's seed: one 63-bit value drawn from ``generator`` (torch's default without one)."""
+    return int(torch.randint(0, 2**63 - 1, (), generator=generator))
+
+
+def randn(shape: tuple[int, ...], generator: torch.Generator | None = None, dtype: torch.dtype = torch.float32,
+          device=None) -> torch.Tensor:
+    """``shape`` standard normal values: fp32 on the CPU (with a CPU generator or none) from the
+    kernel, the stream of one seed drawn from ``generator``; any other dtype or device from
+    ``torch.randn``."""
+    if not (enabled and _normal is not None and dtype == torch.float32
+            and torch.device(device or "cpu").type == "cpu" and _cpu_generator(generator)):
+        return torch.randn(shape, generator=generator, dtype=dtype, device=device)
+    out = torch.empty(shape, dtype=torch.float32)
+    with seen_by_profiler("torchrl_softae::randn"):
+        _normal.fill(out.data_ptr(), 0, 0, out.numel(), _seed(generator), torch.get_num_threads())
+    return out
+
+
+def add_scaled_randn(x: torch.Tensor, std: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    """``x + std * z``, ``z`` standard normal of ``x``'s shape, in one pass (a new tensor).
+
+    Args:
+        x: ``(*B, d)``; std: broadcastable to ``x``.
+        generator: the seed's source.
+
+    Where :func:`applies` does not hold for ``x``, ``x + std * torch.randn(...)``.
+    """
+    if not applies(x, generator) or std.dtype != torch.float32 or std.device != x.device:
+        return x + std * torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
+    x = x.contiguous()
+    std = std.expand_as(x).contiguous()
+    out = torch.empty_like(x)
+    with seen_by_profiler("torchrl_softae::add_scaled_randn"):
+        _normal.fill(out.data_ptr(), x.data_ptr(), std.data_ptr(), out.numel(), _seed(generator),
+                     torch.get_num_threads())
+    return out
