@@ -14,6 +14,8 @@ built, or for tensors it does not take (not fp32 on the CPU), ``torch.randn`` dr
 """
 from __future__ import annotations
 
+import os
+
 import torch
 
 from torchrl_softae.modules._instruction_sets import instruction_set_functions
@@ -27,8 +29,9 @@ except ImportError:
 __all__ = ["available", "applies", "randn", "add_scaled_randn", "isa", "supported_isas", "use_isa", "enabled"]
 
 #: ``False``: every draw by ``torch.randn`` (its stream), to compare or to reproduce a run made
-#: before the kernel; read at every call
-enabled: bool = True
+#: before the kernel; read at every call. The environment variable ``SOFTAE_NORMAL_KERNEL=0`` sets
+#: it at import (for the ``softae`` commands and sweeps)
+enabled: bool = os.environ.get("SOFTAE_NORMAL_KERNEL", "1") != "0"
 
 #: ``"avx512"`` or ``"portable"`` (the same values either way), the ones this CPU runs, a switch
 isa, supported_isas, use_isa = instruction_set_functions(_normal)
