@@ -1,8 +1,9 @@
 """Probabilistic ensemble world model [mu_n, sigma_n] (paper: "Learning Uncertainty Aware Dynamics").
 
 All L members live in stacked weight tensors of shape ``(L, in, out)`` and run in one
-``torch.baddbmm`` per layer (training), or one grouped convolution per layer (CPU inference):
-there is no Python loop over members anywhere on the forward path.
+``torch.baddbmm`` per layer (training), or at inference by the measured fastest path (one grouped
+convolution or batched matmul per layer, or on a CPU with AMX the whole bf16 network in one call
+of :mod:`.amx_network`): there is no Python loop over members anywhere on the forward path.
 
 Each member ``l`` predicts the normalized state *delta* ``(s' - s - m) / v`` from the normalized
 input ``(s, a)`` together with a bounded log-variance (PETS soft bounds). In original units
@@ -390,9 +391,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
     def network_output(self, x: torch.Tensor, with_logvar: bool = True) -> torch.Tensor:
         """Raw ensemble on normalized inputs: the last layer's output ``(L, N, C)`` as the
         inference path leaves it (in the planning dtype, possibly a strided view of the layer's
-        buffer; fp32 from ``amx-network``, which does not round its last layer). Columns ``[:d_s]`` are the normalized delta means, ``[d_s:]`` the raw
-        log-variances (when probabilistic and ``with_logvar``). Every prediction goes through
-        here: :meth:`network`, :meth:`predict_members` and :meth:`predict_moments`."""
+        buffer; fp32 from ``amx-network``, which does not round its last layer). Columns
+        ``[:d_s]`` are the normalized delta means, ``[d_s:]`` the raw log-variances (when
+        probabilistic and ``with_logvar``). Every prediction goes through here:
+        :meth:`network`, :meth:`predict_members` and :meth:`predict_moments`."""
         d = self.observation_dim
         if torch.is_grad_enabled():  # training: plain autograd-friendly layers
             *hidden, last = self.layers  # (unpacked: slicing a ModuleList builds a new module)
@@ -426,7 +428,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
                      and (p != "amx-network" or dtype == torch.bfloat16))
 
     def _inference_path(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> str:
-        """Grouped convolutions (oneDNN, CPU only) or batched matmuls for a shared ``(N, in)`` input."""
+        """Grouped convolutions (oneDNN, CPU only), batched matmuls or the AMX kernel for a shared
+        ``(N, in)`` input: measured once per dtype, row bucket, head and thread count."""
         if x.device.type != "cpu" or not (torch.backends.mkldnn.is_available() and torch.backends.mkldnn.enabled):
             return "bmm"
         forced = self.inference_path if self.inference_path != "auto" else os.environ.get("SOFTAE_INFERENCE_PATH", "auto")
