@@ -280,7 +280,9 @@ def test_amx_network_computes_the_bf16_network_on_every_row_count():
         assert not torch.equal(amx_network.forward(x, packed, 14), want)  # (the zeroed weights ran)
     w, b = amx_network.pack_layer(torch.randn(5, 10, 32), torch.randn(5, 32))
     with pytest.raises(ValueError, match=r"layer 0 is \(5, 2, 1, 16, 32\) torch.float32 .* expected pack_layer's"):
-        amx_network.PackedNetwork([(w.float(), b)])  # the kernel reads raw addresses: never a wrong layout
+        amx_network.PackedNetwork([(w.float(), b)], 10)  # the kernel reads raw addresses: never a wrong layout
+    with pytest.raises(ValueError, match=r"x \(40, 9\) torch.float32 on cpu, expected \(N, 10\) float32"):
+        amx_network.forward(x[:, :9], amx_network.PackedNetwork([(w, b)], 10), 32)
 
 
 def test_the_cache_key_tells_apart_machines_with_the_same_model_name():

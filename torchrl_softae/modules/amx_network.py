@@ -84,11 +84,16 @@ class PackedNetwork:
     Args:
         layers: :func:`pack_layer` of each layer, first to last; every layer but the last is
             followed by SiLU. The tensors are kept alive here: the kernel reads their addresses.
+        in_features: the first layer's inputs before padding (:func:`forward` takes exactly
+            these).
     """
 
-    def __init__(self, layers: list[PackedLayer]):
+    def __init__(self, layers: list[PackedLayer], in_features: int):
         if not layers:
             raise ValueError("amx_network.PackedNetwork: no layers, expected at least one")
+        if not 0 < in_features <= layers[0][0].shape[2] * 32:
+            raise ValueError(f"amx_network.PackedNetwork: in_features {in_features}, expected 1 to "
+                             f"{layers[0][0].shape[2] * 32} (the first layer's padded inputs)")
         self.members = layers[0][0].shape[0]
         for i, (w, b) in enumerate(layers):  # the kernel reads raw addresses: only its own layout
             if not (w.dtype == torch.bfloat16 and w.dim() == 5 and w.shape[0] == self.members
@@ -103,7 +108,7 @@ class PackedNetwork:
                 raise ValueError(f"amx_network.PackedNetwork: layer {i} takes {layers[i][0].shape[2] * 32} padded "
                                  f"inputs, layer {i - 1} gives {layers[i - 1][0].shape[1] * 16}")
         self.layers = list(layers)
-        self.in_features = layers[0][0].shape[2] * 32  # padded
+        self.in_features = in_features
         self.out_features = layers[-1][0].shape[1] * 16  # padded
         self._arguments = (tuple(w.data_ptr() for w, _ in layers), tuple(b.data_ptr() for _, b in layers),
                            tuple(w.shape[2] * 32 for w, _ in layers), tuple(w.shape[1] * 16 for w, _ in layers))
@@ -111,10 +116,10 @@ class PackedNetwork:
     # a copy (deepcopy, pickle) has tensors of its own: its addresses are read from them again,
     # never carried over from the original
     def __getstate__(self) -> dict:
-        return {"layers": self.layers}
+        return {"layers": self.layers, "in_features": self.in_features}
 
     def __setstate__(self, state: dict) -> None:
-        self.__init__(state["layers"])
+        self.__init__(state["layers"], state["in_features"])
 
 
 def forward(x: torch.Tensor, network: PackedNetwork, out_features: int) -> torch.Tensor:
@@ -131,9 +136,9 @@ def forward(x: torch.Tensor, network: PackedNetwork, out_features: int) -> torch
     """
     if not available():
         raise RuntimeError(f"amx_network.forward: not available here ({why_not()})")
-    if x.dim() != 2 or x.dtype != torch.float32 or x.device.type != "cpu":
-        raise ValueError(f"amx_network.forward: x {tuple(x.shape)} {x.dtype} on {x.device}, expected (N, K) "
-                         "float32 on the CPU")
+    if x.dim() != 2 or x.shape[1] != network.in_features or x.dtype != torch.float32 or x.device.type != "cpu":
+        raise ValueError(f"amx_network.forward: x {tuple(x.shape)} {x.dtype} on {x.device}, expected "
+                         f"(N, {network.in_features}) float32 on the CPU")
     x = x.contiguous()
     out = torch.empty(network.members, x.shape[0], out_features, dtype=torch.float32)
     with seen_by_profiler("torchrl_softae::amx_network"):

@@ -600,7 +600,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         layers = [_amx_network.pack_layer(layer.weight.detach(), layer.bias.detach()) for layer in hidden]
         w, b = last.weight.detach(), last.bias.detach()
         layers.append(_amx_network.pack_layer(w if cols is None else w[..., :cols], b if cols is None else b[..., :cols]))
-        packed = _amx_network.PackedNetwork(layers)
+        packed = _amx_network.PackedNetwork(layers, self.layers[0].in_features)
         self._inference_cache[("amx network", cols)] = ([(p, p._version) for p in params], packed)
         return packed
 
