@@ -49,16 +49,18 @@ def available() -> bool:
     return _normal is not None
 
 
-def _cpu_generator(generator: torch.Generator | None) -> bool:
-    return generator is None or generator.device.type == "cpu"
+def _kernel_draws(dtype: torch.dtype, device, generator: torch.Generator | None) -> bool:
+    """Whether draws of ``dtype`` on ``device`` from ``generator`` come from the kernel: fp32 on
+    the CPU, a CPU generator or the default one, the kernel built and :data:`enabled`."""
+    return (enabled and _normal is not None and dtype == torch.float32 and torch.device(device).type == "cpu"
+            and (generator is None or generator.device.type == "cpu"))
 
 
 def applies(like: torch.Tensor, generator: torch.Generator | None = None) -> bool:
     """Whether :func:`randn` / :func:`add_scaled_randn` draw with the kernel for tensors like
     ``like`` (fp32 on the CPU, no autograd) and ``generator`` (a CPU one, or the default): where
     it was built and :data:`enabled`."""
-    return (enabled and _normal is not None and like.dtype == torch.float32 and like.device.type == "cpu"
-            and not like.requires_grad and _cpu_generator(generator))
+    return not like.requires_grad and _kernel_draws(like.dtype, like.device, generator)
 
 
 def _seed(generator: torch.Generator | None) -> int:
@@ -71,8 +73,7 @@ def randn(shape: tuple[int, ...], generator: torch.Generator | None = None, dtyp
     """``shape`` standard normal values: fp32 on the CPU (with a CPU generator or none) from the
     kernel, the stream of one seed drawn from ``generator``; any other dtype or device from
     ``torch.randn``."""
-    if not (enabled and _normal is not None and dtype == torch.float32
-            and torch.device(device or "cpu").type == "cpu" and _cpu_generator(generator)):
+    if not _kernel_draws(dtype, device or "cpu", generator):
         return torch.randn(shape, generator=generator, dtype=dtype, device=device)
     out = torch.empty(shape, dtype=torch.float32)
     with seen_by_profiler("torchrl_softae::randn"):
