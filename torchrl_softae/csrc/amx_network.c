@@ -182,13 +182,14 @@ AMX static void run_unit(const network *net, int64_t member, int64_t row0, uint1
     }
 }
 
-AMX static void run_units(const network *net, int64_t first_unit, int64_t last_unit, int64_t blocks, int64_t width) {
+/* 0 on success, -1 where this thread's scratch could not be allocated (its units not computed) */
+AMX static int run_units(const network *net, int64_t first_unit, int64_t last_unit, int64_t blocks, int64_t width) {
     uint16_t *a = aligned_alloc(64, (size_t)(2 * UNIT_ROWS * width * 2));
     float *c = aligned_alloc(64, UNIT_ROWS * 32 * sizeof(float));
-    if (a == NULL || c == NULL) { /* cannot happen at these sizes; leave the output untouched */
+    if (a == NULL || c == NULL) {
         free(a);
         free(c);
-        return;
+        return -1;
     }
     configure_tiles();
     for (int64_t u = first_unit; u < last_unit; u++)
@@ -196,9 +197,11 @@ AMX static void run_units(const network *net, int64_t first_unit, int64_t last_u
     _tile_release();
     free(a);
     free(c);
+    return 0;
 }
 
-static void forward(const network *net, int threads) {
+/* 0 on success, -1 where a thread could not allocate its scratch (the output is then incomplete) */
+static int forward(const network *net, int threads) {
     int64_t width = 0;
     for (int i = 0; i < net->layers; i++) {
         if (net->kp[i] > width) width = net->kp[i];
@@ -206,20 +209,19 @@ static void forward(const network *net, int threads) {
     }
     const int64_t blocks = (net->n + UNIT_ROWS - 1) / UNIT_ROWS, units = net->members * blocks;
     if (threads > units) threads = (int)units;
-    if (threads <= 1) {
-        run_units(net, 0, units, blocks, width);
-        return;
-    }
+    if (threads <= 1) return run_units(net, 0, units, blocks, width);
+    int failed = 0;
     /* contiguous ranges of units per thread: a thread's units share members, so their weights */
-#pragma omp parallel num_threads(threads)
+#pragma omp parallel num_threads(threads) reduction(| : failed)
     {
 #ifdef _OPENMP
         const int64_t t = omp_get_thread_num();
 #else
         const int64_t t = 0;
 #endif
-        run_units(net, units * t / threads, units * (t + 1) / threads, blocks, width);
+        failed |= run_units(net, units * t / threads, units * (t + 1) / threads, blocks, width) != 0;
     }
+    return failed ? -1 : 0;
 }
 
 static void detect(void) {
@@ -244,9 +246,10 @@ static void detect(void) {
     WHY_NOT = NULL;
 }
 #else
-static void forward(const network *net, int threads) {
+static int forward(const network *net, int threads) {
     (void)net;
     (void)threads;
+    return -1;
 }
 static void detect(void) {}
 #endif
@@ -328,9 +331,11 @@ static PyObject *py_forward(PyObject *self, PyObject *args) {
     net.members = members;
     net.x = (const float *)(uintptr_t)x;
     net.out = (float *)(uintptr_t)out;
+    int status;
     Py_BEGIN_ALLOW_THREADS
-    forward(&net, threads < 1 ? 1 : threads);
+    status = forward(&net, threads < 1 ? 1 : threads);
     Py_END_ALLOW_THREADS
+    if (status != 0) return PyErr_NoMemory(); /* never a silently incomplete output */
     Py_RETURN_NONE;
 }
 
