@@ -639,6 +639,8 @@ def main():
     icem_rows = tuple(k for k in ICEM_ROWS if contender_precision(k) in precisions)
     repeats = max(args.repeats, 5)
     torch.set_num_threads(args.threads)
+    # the draws as this process would make them (SOFTAE_NORMAL_KERNEL=0: torch.randn for every contender)
+    kernel_noise = normal_kernel.available() and normal_kernel.enabled
     shapes = [s for s in SHAPES if not args.quick or s[0] in ("arm58", "sopra32-H5")]
     cpu = cpu_description()
     out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"planning_speed-{cpu_kind(cpu)}.json"
@@ -648,7 +650,7 @@ def main():
     print(f"compiled SiLU kernel: {silu_kernel.isa() or 'not built (torch SiLU only)'}; one-pass moments kernel: "
           f"{moments_kernel.isa() or 'no (not built, or no AVX2: torch ops)'}; AMX network kernel: "
           f"{'yes' if amx_network.available() else 'no (' + amx_network.why_not() + ')'}; normal draws: "
-          f"{'counter-based kernel, ' + normal_kernel.isa() if normal_kernel.available() else 'torch.randn'}",
+          f"{'counter-based kernel, ' + normal_kernel.isa() if kernel_noise else 'torch.randn'}",
           flush=True)
     if "bf16" not in precisions:
         print("bf16 contenders skipped: this CPU has no native bf16 (AMX-BF16, AVX512-BF16); precision='auto' plans "
@@ -661,7 +663,8 @@ def main():
         have_mbrl = False
         print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} ({MBRL_INSTALL})")
     results = {"cpu": cpu, "silu_kernel_isa": silu_kernel.isa(), "moments_kernel": moments_kernel.available(),
-               "amx_network_kernel": amx_network.available(), "normal_kernel_isa": normal_kernel.isa(),
+               "amx_network_kernel": amx_network.available(),
+               "normal_kernel_isa": normal_kernel.isa() if kernel_noise else None,
                "moments_kernel_isa": moments_kernel.isa(),
                "threads": args.threads, "allocator": allocator, "precisions": list(precisions),
                "repeats": repeats, "rows": []}
@@ -692,7 +695,7 @@ def main():
                 torch_moments.add(f"{key}@torch-moments")
 
         torch_randn = set()  # contenders whose normal draws are torch.randn's (the noise kernel's baseline)
-        if args.compare_noise and normal_kernel.available():
+        if args.compare_noise and kernel_noise:
             for key in icem_rows:
                 planners[f"{key}@torch-randn"] = icem_contender(key, sample_env, opt_env, icem)
                 torch_randn.add(f"{key}@torch-randn")
@@ -700,7 +703,7 @@ def main():
         def configure(key):  # the model as this contender runs it
             model.inference_path = path_of.get(key, "auto")
             model.fused_moments = key not in torch_moments
-            normal_kernel.enabled = key not in torch_randn
+            normal_kernel.enabled = kernel_noise and key not in torch_randn
 
         alone = {}  # contender -> its plan's network calls, replayed alone (--network-alone)
         with torch.no_grad(), warnings.catch_warnings():
@@ -733,7 +736,7 @@ def main():
                         alone[key]()
                         times[f"{key}:network"].append(time.perf_counter() - t)
                 pk = peaks(repeats=2, so_far=pk, precisions=precisions)  # between rounds, so a noisy moment cannot set the peak
-        model.inference_path, model.fused_moments, normal_kernel.enabled = "auto", True, True
+        model.inference_path, model.fused_moments, normal_kernel.enabled = "auto", True, kernel_noise
         chosen = sorted({f"{'bf16' if k[0] == torch.bfloat16 else 'fp32'} rows<={k[1]}: {v}"
                          for k, v in model._path_memo.items() if isinstance(v, str)})
         timed.append((name, d_s, d_a, H, model, sample_env, planners, times, chosen, alone))
