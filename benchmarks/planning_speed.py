@@ -88,7 +88,7 @@ from torchrl_softae import keep_freed_memory
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
 from torchrl_softae.modules.ensemble import ensemble_std
-from torchrl_softae.modules import amx_network, moments_kernel, normal_kernel, silu_kernel
+from torchrl_softae.modules import amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel
 from torchrl_softae.modules.precision import (
     cpu_flags, cpu_info, cpu_name, fast_bf16_available, onednn_bf16_available, resolve_planning_dtype)
 
@@ -376,10 +376,10 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10,
 
 #: the ops that run the network's layers on the inference paths (the rest is the work between them)
 #: (``aten::mm`` + ``bias_silu_``: the first layer and the hidden layers of ``bmm-silu-kernel``;
-#: ``amx_network``: the whole network of ``amx-network`` in one call)
+#: ``amx_network``, ``fma_network``: the whole network of ``amx-network`` or ``fma-network`` in one call)
 NETWORK_OPS = ("mkldnn::_convolution_pointwise", "aten::convolution", "aten::mkldnn_convolution",
                "aten::bmm", "aten::baddbmm", "aten::addmm", "aten::mm", "aten::silu_", "torchrl_softae::silu_",
-               "torchrl_softae::bias_silu_", "torchrl_softae::amx_network")
+               "torchrl_softae::bias_silu_", "torchrl_softae::amx_network", "torchrl_softae::fma_network")
 
 
 def contender_precision(key: str) -> str:
@@ -649,7 +649,8 @@ def main():
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; allocator: {allocator}")
     print(f"compiled SiLU kernel: {silu_kernel.isa() or 'not built (torch SiLU only)'}; one-pass moments kernel: "
           f"{moments_kernel.isa() or 'no (not built, or no AVX2: torch ops)'}; AMX network kernel: "
-          f"{'yes' if amx_network.available() else 'no (' + amx_network.why_not() + ')'}; normal draws: "
+          f"{'yes' if amx_network.available() else 'no (' + amx_network.why_not() + ')'}; FMA network kernel: "
+          f"{fma_network.isa() or 'no (' + fma_network.why_not() + ')'}; normal draws: "
           f"{'counter-based kernel, ' + normal_kernel.isa() if kernel_noise else 'torch.randn'}",
           flush=True)
     if "bf16" not in precisions:
@@ -663,7 +664,7 @@ def main():
         have_mbrl = False
         print(f"mbrl-lib anchor skipped: {type(e).__name__}: {e} ({MBRL_INSTALL})")
     results = {"cpu": cpu, "silu_kernel_isa": silu_kernel.isa(), "moments_kernel": moments_kernel.available(),
-               "amx_network_kernel": amx_network.available(),
+               "amx_network_kernel": amx_network.available(), "fma_network_kernel_isa": fma_network.isa(),
                "normal_kernel_isa": normal_kernel.isa() if kernel_noise else None,
                "moments_kernel_isa": moments_kernel.isa(),
                "threads": args.threads, "allocator": allocator, "precisions": list(precisions),

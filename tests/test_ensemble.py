@@ -7,7 +7,7 @@ from tensordict import TensorDict
 
 from torchrl_softae.modules import EnsembleWorldModel, ensemble_std
 from torchrl_softae.modules import ensemble as ensemble_module
-from torchrl_softae.modules import amx_network, moments_kernel, silu_kernel
+from torchrl_softae.modules import amx_network, fma_network, moments_kernel, silu_kernel
 from torchrl_softae.modules.precision import onednn_bf16_available
 from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 
@@ -196,10 +196,12 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
         model._path_memo.clear()
         assert model._inference_path(torch.randn(400, 8), torch.float32, None) == first
         expected = ("conv", "conv-fused", "bmm") + (("conv-silu-kernel", "bmm-silu-kernel") if silu_kernel.available()
-                                                    else ()) + (("amx-network",) if amx_network.available() else ())
+                                                    else ()) + (("amx-network",) if amx_network.available() else ()) \
+            + (("fma-network",) if fma_network.available() else ())
         assert model.available_inference_paths() == expected
         usable = model.available_inference_paths(torch.float32)  # amx-network is bf16 only
         assert usable == tuple(p for p in expected if p != "amx-network")
+        assert "fma-network" not in model.available_inference_paths(torch.bfloat16)  # fp32 only
         for forced in usable:
             monkeypatch.setenv("SOFTAE_INFERENCE_PATH", forced)
             assert model._inference_path(x, torch.float32, None) == forced
@@ -271,7 +273,7 @@ def test_amx_network_computes_the_bf16_network_on_every_row_count():
             model.network(x)
         # a copy of packed weights (a deepcopy or pickle of the model carries them) computes with
         # its own tensors, not with the original's addresses: the original is zeroed before it runs
-        packed = model._amx_packed(None)
+        packed = model._packed_network("amx-network", None)
         want = amx_network.forward(x, packed, 14)
         copied = copy.deepcopy(packed)
         for w, b in packed.layers:
@@ -283,6 +285,86 @@ def test_amx_network_computes_the_bf16_network_on_every_row_count():
         amx_network.PackedNetwork([(w.float(), b)], 10)  # the kernel reads raw addresses: never a wrong layout
     with pytest.raises(ValueError, match=r"x \(40, 9\) torch.float32 on cpu, expected \(N, 10\) float32"):
         amx_network.forward(x[:, :9], amx_network.PackedNetwork([(w, b)], 10), 32)
+
+
+def test_fma_weights_are_packed_as_panels_of_32_outputs():
+    """The FMA kernel's layout (csrc/fma_network.c), checked element by element on any CPU: panel
+    p of member l holds W[l, k, 32 p + j] at [k, j]; outputs padded to multiples of 32 and extra
+    input rows (a hidden layer taking the previous one's padded outputs) are zeros."""
+    torch.manual_seed(0)
+    w, b = torch.randn(2, 40, 50), torch.randn(2, 50)
+    packed, bias = fma_network.pack_layer(w, b, inputs=64)
+    assert packed.shape == (2, 2, 64, 32) and packed.dtype == torch.float32
+    assert bias.shape == (2, 64) and bias.dtype == torch.float32
+    for l, p, k, j in [(0, 0, 0, 0), (1, 1, 39, 17), (0, 1, 7, 0), (1, 0, 20, 31)]:
+        assert packed[l, p, k, j] == w[l, k, 32 * p + j]
+    assert packed[:, :, 40:].abs().sum() == 0  # input rows 40..63
+    assert packed[:, 1, :, 18:].abs().sum() == 0  # outputs 50..63
+    torch.testing.assert_close(bias[:, :50], b)
+    assert bias[:, 50:].abs().sum() == 0
+    with pytest.raises(ValueError, match="inputs=30, expected at least the weight's 40"):
+        fma_network.pack_layer(w, b, inputs=30)
+
+
+@pytest.mark.skipif(not fma_network.available(), reason=f"the FMA network kernel does not run here: {fma_network.why_not()}")
+def test_fma_network_computes_the_fp32_network_on_every_row_count_and_instruction_set():
+    """The whole network in one fp32 call against float64 layers, on row counts around the
+    kernel's blocks (12 rows with AVX-512, 6 with AVX2) and hidden widths that need padding: within
+    fp32 rounding; the same bits on every instruction set and thread count (every output element
+    is the same FMA sequence); the model takes it when forced and refuses it in bf16 with one
+    line naming what it needs."""
+    torch.manual_seed(0)
+    model = EnsembleWorldModel(7, 3, num_cells=50, depth=3).eval()  # hidden 50 -> 64, outputs 14 -> 32
+    threads, isa = torch.get_num_threads(), fma_network.isa()
+    try:
+        with torch.no_grad():
+            for n in (1, 6, 7, 12, 13, 25, 206):
+                x = torch.randn(n, 10)
+                h = x.double()
+                for i, layer in enumerate(model.layers):
+                    h = torch.einsum("nk,lkm->lnm" if h.dim() == 2 else "lnk,lkm->lnm", h, layer.weight.double())
+                    h = h + layer.bias.double()
+                    h = torch.nn.functional.silu(h) if i < len(model.layers) - 1 else h
+                outs = []
+                for name in fma_network.supported_isas():
+                    fma_network.use_isa(name)
+                    for t in (1, 2):
+                        torch.set_num_threads(t)
+                        outs.append(model._run_path("fma-network", x, torch.float32, None))
+                assert outs[0].shape == (5, n, 14) and outs[0].dtype == torch.float32
+                torch.testing.assert_close(outs[0].double(), h, rtol=1e-5, atol=1e-5)
+                for out in outs[1:]:
+                    torch.testing.assert_close(out, outs[0], rtol=0, atol=0)
+                means = model._run_path("fma-network", x, torch.float32, 7)  # the mean head alone
+                torch.testing.assert_close(means, outs[-1][..., :7], rtol=0, atol=0)
+    finally:
+        torch.set_num_threads(threads)
+        fma_network.use_isa(isa)
+    model.inference_path = "fma-network"
+    x = torch.randn(40, 10)
+    with torch.no_grad():
+        mu = model.network(x)[0]
+        model.inference_path = "bmm"
+        torch.testing.assert_close(mu, model.network(x)[0], rtol=1e-5, atol=1e-5)
+        model.inference_path, model.planning_dtype = "fma-network", torch.bfloat16
+        with pytest.raises(RuntimeError, match="'fma-network' runs fp32 with nn.SiLU .* got torch.bfloat16"):
+            model.network(x)
+        model.planning_dtype = None
+        # a copy of packed weights computes with its own tensors, not the original's addresses
+        packed = model._packed_network("fma-network", None)
+        want = fma_network.forward(x, packed, 14)
+        copied = copy.deepcopy(packed)
+        for w, b in packed.layers:
+            w.zero_(), b.zero_()
+        torch.testing.assert_close(fma_network.forward(x, copied, 14), want, rtol=0, atol=0)
+        assert not torch.equal(fma_network.forward(x, packed, 14), want)  # (the zeroed weights ran)
+    w, b = fma_network.pack_layer(torch.randn(5, 10, 32), torch.randn(5, 32))
+    with pytest.raises(ValueError, match=r"layer 0 is \(5, 1, 10, 32\) torch.bfloat16 .* expected pack_layer's"):
+        fma_network.PackedNetwork([(w.bfloat16(), b)], 10)  # the kernel reads raw addresses: never a wrong layout
+    with pytest.raises(ValueError, match="in_features 9, expected the first layer's 10"):
+        fma_network.PackedNetwork([(w, b)], 9)
+    with pytest.raises(ValueError, match=r"x \(40, 9\) torch.float32 on cpu, expected \(N, 10\) float32"):
+        fma_network.forward(x[:, :9], fma_network.PackedNetwork([(w, b)], 10), 32)
 
 
 def test_the_cache_key_tells_apart_machines_with_the_same_model_name():
@@ -584,7 +666,7 @@ def test_packed_conv_weights_match(monkeypatch):
     assert not torch.allclose(before, after)
 
 
-@pytest.mark.parametrize("path", ["conv-fused", "bmm", "amx-network"])
+@pytest.mark.parametrize("path", ["conv-fused", "bmm", "amx-network", "fma-network"])
 def test_cached_inference_weights_follow_fused_optimizer_steps_copies_and_moves(path):
     """A fused optimizer step updates the parameters without moving their version counters, and
     ``.to()`` swaps their storage: the cast/packed inference weights must follow both, also for a
@@ -603,6 +685,8 @@ def test_cached_inference_weights_follow_fused_optimizer_steps_copies_and_moves(
 
     if path == "amx-network" and not amx_network.available():
         pytest.skip(f"the AMX network kernel does not run here: {amx_network.why_not()}")
+    if path == "fma-network" and not fma_network.available():
+        pytest.skip(f"the FMA network kernel does not run here: {fma_network.why_not()}")
     model = _model().eval()
     model.inference_path = path
     if path == "amx-network":  # bf16 only

@@ -33,7 +33,7 @@
 #include <immintrin.h>
 #define SOFTAE_X86 1
 #include "silu_bf16grade.h"
-#include "vector_exp.h"
+#include "silu_fp32.h"
 #endif
 
 enum { DTYPE_FLOAT32 = 0, DTYPE_BFLOAT16 = 1 };
@@ -71,11 +71,6 @@ static void silu_bf16_portable(uint16_t *x, const float *b, int64_t n) {
 
 /* ------------------------------------------------------------------ AVX2 + FMA */
 #ifdef SOFTAE_X86
-__attribute__((target("avx2,fma"))) static inline __m256 silu_avx2(__m256 v) {
-    __m256 e = exp_avx2(_mm256_sub_ps(_mm256_setzero_ps(), v));
-    return _mm256_div_ps(v, _mm256_add_ps(_mm256_set1_ps(1.0f), e));
-}
-
 __attribute__((target("avx2,fma"))) static void silu_f32_avx2(float *x, const float *b, int64_t n) {
     int64_t i = 0;
     if (b)
@@ -111,11 +106,6 @@ __attribute__((target("avx2,fma"))) static void silu_bf16_avx2(uint16_t *x, cons
 
 /* ------------------------------------------------------------------ AVX-512 */
 #ifdef SOFTAE_X86
-__attribute__((target("avx512f"))) static inline __m512 silu_avx512(__m512 v) {
-    __m512 e = exp_avx512(_mm512_sub_ps(_mm512_setzero_ps(), v));
-    return _mm512_div_ps(v, _mm512_add_ps(_mm512_set1_ps(1.0f), e));
-}
-
 __attribute__((target("avx512f"))) static void silu_f32_avx512(float *x, const float *b, int64_t n) {
     int64_t i = 0;
     if (b)

@@ -12,14 +12,14 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_softae.modules._profiling import seen_by_profiler
+from torchrl_softae.modules._fused_network import PackedLayer, PackedNetworkBase, run
 
 try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
     from torchrl_softae.modules import _amx_network
 except ImportError:
     _amx_network = None
 
-__all__ = ["available", "why_not", "cache_tag", "pack_layer", "forward", "PackedLayer", "PackedNetwork"]
+__all__ = ["available", "why_not", "cache_tag", "pack_layer", "pack_network", "forward", "PackedLayer", "PackedNetwork"]
 
 #: features are padded to multiples of this (a tile's 32 bf16 inputs; two 16-column tiles)
 _BLOCK = 32
@@ -48,9 +48,6 @@ def _padded(size: int) -> int:
     return -(-size // _BLOCK) * _BLOCK
 
 
-PackedLayer = tuple[torch.Tensor, torch.Tensor]
-
-
 def pack_layer(weight: torch.Tensor, bias: torch.Tensor) -> PackedLayer:
     """One ensemble layer in the kernel's layout.
 
@@ -75,51 +72,35 @@ def pack_layer(weight: torch.Tensor, bias: torch.Tensor) -> PackedLayer:
     return w.view(members, mp // 16, kp // 32, *_TILE), b
 
 
-class PackedNetwork:
+class PackedNetwork(PackedNetworkBase):
     """Every layer of an ensemble network in the kernel's layout (:func:`pack_layer`), checked
-    once, with the kernel's arguments prepared: a call of :func:`forward` costs no Python per
-    layer (at one-particle planning's 206 rows a network call is about 290 us, and checking and
-    collecting five layers' addresses at every call had cost 23 us of it).
+    once, with the kernel's arguments prepared (:class:`~._fused_network.PackedNetworkBase`).
+    ``in_features`` may be less than the first layer's padded inputs: the kernel pads the input."""
 
-    Args:
-        layers: :func:`pack_layer` of each layer, first to last; every layer but the last is
-            followed by SiLU. The tensors are kept alive here: the kernel reads their addresses.
-        in_features: the first layer's inputs before padding (:func:`forward` takes exactly
-            these).
-    """
+    kernel = "amx_network"
 
-    def __init__(self, layers: list[PackedLayer], in_features: int):
-        if not layers:
-            raise ValueError("amx_network.PackedNetwork: no layers, expected at least one")
-        if not 0 < in_features <= layers[0][0].shape[2] * 32:
-            raise ValueError(f"amx_network.PackedNetwork: in_features {in_features}, expected 1 to "
-                             f"{layers[0][0].shape[2] * 32} (the first layer's padded inputs)")
-        self.members = layers[0][0].shape[0]
-        for i, (w, b) in enumerate(layers):  # the kernel reads raw addresses: only its own layout
-            if not (w.dtype == torch.bfloat16 and w.dim() == 5 and w.shape[0] == self.members
-                    and w.shape[3:] == _TILE and w.is_contiguous() and w.device.type == "cpu"
-                    and b.dtype == torch.float32 and b.shape == (self.members, w.shape[1] * 16)
-                    and b.is_contiguous()):
-                raise ValueError(f"amx_network.PackedNetwork: layer {i} is {tuple(w.shape)} {w.dtype} with bias "
-                                 f"{tuple(b.shape)} {b.dtype}, expected pack_layer's output for {self.members} "
-                                 "members")
-        for i in range(1, len(layers)):
-            if layers[i][0].shape[2] * 32 != layers[i - 1][0].shape[1] * 16:
-                raise ValueError(f"amx_network.PackedNetwork: layer {i} takes {layers[i][0].shape[2] * 32} padded "
-                                 f"inputs, layer {i - 1} gives {layers[i - 1][0].shape[1] * 16}")
-        self.layers = list(layers)
-        self.in_features = in_features
-        self.out_features = layers[-1][0].shape[1] * 16  # padded
-        self._arguments = (tuple(w.data_ptr() for w, _ in layers), tuple(b.data_ptr() for _, b in layers),
-                           tuple(w.shape[2] * 32 for w, _ in layers), tuple(w.shape[1] * 16 for w, _ in layers))
+    @staticmethod
+    def _layer_error(weight: torch.Tensor, bias: torch.Tensor, members: int) -> str | None:
+        if (weight.dtype == torch.bfloat16 and weight.dim() == 5 and weight.shape[0] == members
+                and weight.shape[3:] == _TILE and weight.is_contiguous() and weight.device.type == "cpu"
+                and bias.dtype == torch.float32 and bias.shape == (members, weight.shape[1] * 16)
+                and bias.is_contiguous()):
+            return None
+        return f"pack_layer's output for {members} members"
 
-    # a copy (deepcopy, pickle) has tensors of its own: its addresses are read from them again,
-    # never carried over from the original
-    def __getstate__(self) -> dict:
-        return {"layers": self.layers, "in_features": self.in_features}
+    @staticmethod
+    def _in_features(weight: torch.Tensor) -> int:
+        return weight.shape[2] * 32
 
-    def __setstate__(self, state: dict) -> None:
-        self.__init__(state["layers"], state["in_features"])
+    @staticmethod
+    def _out_features(weight: torch.Tensor) -> int:
+        return weight.shape[1] * 16
+
+
+def pack_network(layers: list[tuple[torch.Tensor, torch.Tensor]]) -> PackedNetwork:
+    """A whole network, ``[(weight (L, K, M), bias), ...]`` first to last, packed (each layer's
+    inputs and outputs padded to multiples of 32, so each takes the previous one's outputs)."""
+    return PackedNetwork([pack_layer(w, b) for w, b in layers], layers[0][0].shape[1])
 
 
 def forward(x: torch.Tensor, network: PackedNetwork, out_features: int) -> torch.Tensor:
@@ -136,12 +117,4 @@ def forward(x: torch.Tensor, network: PackedNetwork, out_features: int) -> torch
     """
     if not available():
         raise RuntimeError(f"amx_network.forward: not available here ({why_not()})")
-    if x.dim() != 2 or x.shape[1] != network.in_features or x.dtype != torch.float32 or x.device.type != "cpu":
-        raise ValueError(f"amx_network.forward: x {tuple(x.shape)} {x.dtype} on {x.device}, expected "
-                         f"(N, {network.in_features}) float32 on the CPU")
-    x = x.contiguous()
-    out = torch.empty(network.members, x.shape[0], out_features, dtype=torch.float32)
-    with seen_by_profiler("torchrl_softae::amx_network"):
-        _amx_network.forward(x.data_ptr(), x.shape[0], x.shape[1], out.data_ptr(), out_features, network.members,
-                             *network._arguments, torch.get_num_threads())
-    return out
+    return run(_amx_network, network, x, out_features)

@@ -28,6 +28,7 @@ from torch.nn import functional as F
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from torchrl_softae.modules import amx_network as _amx_network
+from torchrl_softae.modules import fma_network as _fma_network
 from torchrl_softae.modules import moments_kernel as _moments_kernel
 from torchrl_softae.modules import paths
 from torchrl_softae.modules import silu_kernel as _silu_kernel
@@ -49,6 +50,11 @@ def _conv_weight_packer():
 
 
 _PACK_CONV_WEIGHT = _conv_weight_packer()
+
+
+#: the inference paths that run the whole network in one kernel call, and the dtype each runs in
+_WHOLE_NETWORK_KERNELS = {"amx-network": _amx_network, "fma-network": _fma_network}
+_WHOLE_NETWORK_DTYPES = {"amx-network": torch.bfloat16, "fma-network": torch.float32}
 
 
 def _onednn_runs(dtype: torch.dtype) -> bool:
@@ -413,19 +419,20 @@ class EnsembleWorldModel(TensorDictModuleBase):
 
     def available_inference_paths(self, dtype: torch.dtype | None = None) -> tuple[str, ...]:
         """The inference paths this model can run here: the compiled-SiLU ones need ``nn.SiLU`` and
-        the kernel built (:mod:`.silu_kernel`), ``amx-network`` ``nn.SiLU`` and a CPU that runs
-        :mod:`.amx_network`. With ``dtype`` (the hidden layers' dtype), only those that run in it:
-        ``conv-fused`` also needs an activation oneDNN fuses and oneDNN's own convolution in
-        ``dtype`` (bf16 needs AVX512-BW/VL/DQ or AVX-NE-CONVERT); ``amx-network`` is bf16 only."""
+        the kernel built (:mod:`.silu_kernel`), the whole-network ones ``nn.SiLU`` and a CPU that
+        runs their kernel (:mod:`.amx_network`, :mod:`.fma_network`). With ``dtype`` (the hidden
+        layers' dtype), only those that run in it: ``conv-fused`` also needs an activation oneDNN
+        fuses and oneDNN's own convolution in ``dtype`` (bf16 needs AVX512-BW/VL/DQ or
+        AVX-NE-CONVERT); ``amx-network`` is bf16 only, ``fma-network`` fp32 only."""
         silu = type(self.activation) is nn.SiLU
         usable = tuple(p for p in INFERENCE_PATHS
                        if (not p.endswith("-silu-kernel") or self._silu_kernel_applies())
-                       and (p != "amx-network" or (silu and _amx_network.available())))
+                       and (p not in _WHOLE_NETWORK_KERNELS or (silu and _WHOLE_NETWORK_KERNELS[p].available())))
         if dtype is None:
             return usable
         return tuple(p for p in usable
                      if (p != "conv-fused" or (self._fused_activation() is not None and _onednn_runs(dtype)))
-                     and (p != "amx-network" or dtype == torch.bfloat16))
+                     and (p not in _WHOLE_NETWORK_KERNELS or dtype == _WHOLE_NETWORK_DTYPES[p]))
 
     def _inference_path(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> str:
         """Grouped convolutions (oneDNN, CPU only), batched matmuls or the AMX kernel for a shared
@@ -438,6 +445,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
                 raise RuntimeError(f"inference path 'amx-network' runs bf16 with nn.SiLU on an AMX CPU: got {dtype}, "
                                    f"activation {type(self.activation).__name__}, "
                                    f"{_amx_network.why_not() or 'AMX available'}")
+            if forced == "fma-network" and forced not in self.available_inference_paths(dtype):
+                raise RuntimeError(f"inference path 'fma-network' runs fp32 with nn.SiLU on a CPU with AVX-512F or "
+                                   f"AVX2+FMA: got {dtype}, activation {type(self.activation).__name__}, "
+                                   f"{_fma_network.why_not() or 'the kernel runs here'}")
             if forced not in self.available_inference_paths():
                 raise RuntimeError(f"inference path {forced!r} needs nn.SiLU and the compiled kernel "
                                    f"(activation {type(self.activation).__name__}, kernel built: {_silu_kernel.available()})")
@@ -463,8 +474,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
     def _run_path(self, path: str, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
         """The network on a shared ``(N, in)`` input (or ``bmm`` on ``(L, N, in)``) by inference ``path``."""
         silu_kernel = path.endswith("-silu-kernel")
-        if path == "amx-network":
-            return self._network_amx(x, cols)
+        if path in _WHOLE_NETWORK_KERNELS:
+            return self._network_whole(path, x, cols)
         if path.startswith("conv"):
             return self._network_grouped_conv(x, dtype, cols, fused=path == "conv-fused", silu_kernel=silu_kernel)
         return self._network_bmm(x, dtype, cols, silu_kernel=silu_kernel)
@@ -579,29 +590,31 @@ class EnsembleWorldModel(TensorDictModuleBase):
 
         return self._cached(layer, ("conv", dtype, cols, bucket), build)
 
-    def _network_amx(self, x: torch.Tensor, cols: int | None) -> torch.Tensor:
-        """Inference on a shared ``(N, in)`` input in one call of :mod:`.amx_network`: every
-        member's rows through all layers in AMX tiles, bf16 with fp32 accumulation, the SiLU fused
-        into each hidden layer. Returns ``(L, N, cols or out)`` in fp32 (the last layer is not
-        rounded to bf16)."""
-        return _amx_network.forward(x.float(), self._amx_packed(cols), cols or self.layers[-1].out_features)
+    def _network_whole(self, path: str, x: torch.Tensor, cols: int | None) -> torch.Tensor:
+        """Inference on a shared ``(N, in)`` input in one call of a whole-network kernel
+        (:data:`_WHOLE_NETWORK_KERNELS`): every member's rows through all layers, the SiLU fused
+        into each hidden layer; ``amx-network`` in bf16 AMX tiles with fp32 accumulation,
+        ``fma-network`` in fp32 FMA register blocks. Returns ``(L, N, cols or out)`` in fp32 (the
+        last layer is not rounded)."""
+        kernel = _WHOLE_NETWORK_KERNELS[path]
+        return kernel.forward(x.float(), self._packed_network(path, cols), cols or self.layers[-1].out_features)
 
-    def _amx_packed(self, cols: int | None) -> _amx_network.PackedNetwork:
-        """All layers packed for :mod:`.amx_network` (the last one's first ``cols`` outputs), cached
+    def _packed_network(self, path: str, cols: int | None):
+        """All layers packed for ``path``'s kernel (the last one's first ``cols`` outputs), cached
         until a parameter changes (as :meth:`_cached`: its version counter moves; ``.to()`` and
         fused optimizer steps clear the cache). One check of the version counters of the
         parameters the entry holds per call: reading ten parameters through the modules cost 7 us
         of a 290 us network call."""
-        hit = self._inference_cache.get(("amx network", cols))
+        hit = self._inference_cache.get(("whole network", path, cols))
         if hit is not None and all(p._version == v for p, v in hit[0]):
             return hit[1]
         params = [p for layer in self.layers for p in (layer.weight, layer.bias)]
-        *hidden, last = self.layers
-        layers = [_amx_network.pack_layer(layer.weight.detach(), layer.bias.detach()) for layer in hidden]
-        w, b = last.weight.detach(), last.bias.detach()
-        layers.append(_amx_network.pack_layer(w if cols is None else w[..., :cols], b if cols is None else b[..., :cols]))
-        packed = _amx_network.PackedNetwork(layers, self.layers[0].in_features)
-        self._inference_cache[("amx network", cols)] = ([(p, p._version) for p in params], packed)
+        layers = [(layer.weight.detach(), layer.bias.detach()) for layer in self.layers]
+        if cols is not None:
+            w, b = layers[-1]
+            layers[-1] = (w[..., :cols], b[..., :cols])
+        packed = _WHOLE_NETWORK_KERNELS[path].pack_network(layers)
+        self._inference_cache[("whole network", path, cols)] = ([(p, p._version) for p in params], packed)
         return packed
 
     def _kernel_bias(self, layer: EnsembleLinear, k: int) -> torch.Tensor:

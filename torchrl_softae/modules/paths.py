@@ -6,12 +6,12 @@ Which is faster depends on the CPU, not on its vendor (AMD EPYC without AMX: one
 beats MKL's AVX2 path; Intel with AMX: MKL's fp32 GEMM beats oneDNN's), so each choice is timed
 once on the real shapes at first use and cached for the process and on disk
 (``$TORCHRL_SOFTAE_CACHE/paths.json``, keyed by CPU model and instruction sets, the compiled
-SiLU's instruction set and revision, the AMX network kernel's revision, torch version, thread
+SiLU's instruction set and revision, the whole-network kernels' revisions, torch version, thread
 count, the candidates and how they were timed), so
 a resumed run on the same kind of machine makes the same choice as the run it resumes. Each
 candidate is timed in 5 interleaved rounds of at least 2 ms and judged by its best round: on a
 shared host, interference only ever adds time.
-``SOFTAE_INFERENCE_PATH=conv|conv-fused|bmm|conv-silu-kernel|bmm-silu-kernel|amx-network``
+``SOFTAE_INFERENCE_PATH=conv|conv-fused|bmm|conv-silu-kernel|bmm-silu-kernel|amx-network|fma-network``
 (or ``EnsembleWorldModel.inference_path``) fixes it for reproducibility.
 """
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from torchrl_softae.modules import amx_network, silu_kernel
+from torchrl_softae.modules import amx_network, fma_network, silu_kernel
 from torchrl_softae.modules.precision import cpu_info, cpu_name, flags_of
 
 __all__ = ["choose", "choices", "cache_path", "cpu_key", "INFERENCE_PATHS"]
@@ -33,8 +33,10 @@ __all__ = ["choose", "choices", "cache_path", "cpu_key", "INFERENCE_PATHS"]
 #: activation fused into the convolution (a oneDNN post-op: one pass over the layer's output
 #: instead of two), batched matmuls; and the two unfused ones with the SiLU by the compiled kernel
 #: (torchrl_softae/csrc/silu.c; candidates only where it was built and the activation is SiLU);
-#: and the whole network in one AMX kernel (bf16 with SiLU on a CPU with AMX, csrc/amx_network.c)
-INFERENCE_PATHS = ("conv", "conv-fused", "bmm", "conv-silu-kernel", "bmm-silu-kernel", "amx-network")
+#: and the whole network in one kernel call: bf16 in AMX tiles (with SiLU on a CPU with AMX,
+#: csrc/amx_network.c) or fp32 in FMA register blocks (with SiLU on AVX-512F or AVX2+FMA,
+#: csrc/fma_network.c)
+INFERENCE_PATHS = ("conv", "conv-fused", "bmm", "conv-silu-kernel", "bmm-silu-kernel", "amx-network", "fma-network")
 _LOCK = threading.RLock()  # re-entrant: a measured candidate may itself make a measured choice
 _MEMORY: dict[str, str] = {}
 
@@ -68,6 +70,7 @@ def cpu_key(info: dict[str, str], silu_tag: str | None) -> str:
 
 def _machine() -> str:
     return (f"{cpu_key(cpu_info(), silu_kernel.cache_tag())}|AMX network {amx_network.cache_tag() or 'not run'}|"
+            f"FMA network {fma_network.cache_tag() or 'not run'}|"
             f"torch {torch.__version__}|{torch.get_num_threads()} threads")
 
 
