@@ -2,8 +2,9 @@
 
 All L members live in stacked weight tensors of shape ``(L, in, out)`` and run in one
 ``torch.baddbmm`` per layer (training), or at inference by the measured fastest path (one grouped
-convolution or batched matmul per layer, or on a CPU with AMX the whole bf16 network in one call
-of :mod:`.amx_network`): there is no Python loop over members anywhere on the forward path.
+convolution or batched matmul per layer, or the whole network in one call of our own kernels: bf16
+in AMX tiles, :mod:`.amx_network`, fp32 in FMA register blocks, :mod:`.fma_network`): there is no
+Python loop over members anywhere on the forward path.
 
 Each member ``l`` predicts the normalized state *delta* ``(s' - s - m) / v`` from the normalized
 input ``(s, a)`` together with a bounded log-variance (PETS soft bounds). In original units
@@ -397,7 +398,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
     def network_output(self, x: torch.Tensor, with_logvar: bool = True) -> torch.Tensor:
         """Raw ensemble on normalized inputs: the last layer's output ``(L, N, C)`` as the
         inference path leaves it (in the planning dtype, possibly a strided view of the layer's
-        buffer; fp32 from ``amx-network``, which does not round its last layer). Columns
+        buffer; fp32 from the whole-network kernels, which do not round their last layer). Columns
         ``[:d_s]`` are the normalized delta means, ``[d_s:]`` the raw log-variances (when
         probabilistic and ``with_logvar``). Every prediction goes through here:
         :meth:`network`, :meth:`predict_members` and :meth:`predict_moments`."""
