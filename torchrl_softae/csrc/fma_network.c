@@ -4,10 +4,10 @@
  *
  * Why: in fp32 a network call through torch is five oneDNN or MKL calls, each reading and writing
  * its layer's whole output, plus a SiLU pass per hidden layer. On the AMX Xeon the best of them ran
- * a 10-particle arm call (2060 rows per member) at 73-81 % of the fp32 GEMM peak and a one-particle
- * call (206 rows) at 56-61 %; this kernel, interleaved with them, at 87-96 % and 65-75 % (four
- * runs). Prefetching the next member's weights into L2 during a thread's last units of a member
- * was tried and gained nothing (the hardware prefetchers keep up).
+ * a 10-particle arm call (2060 rows per member) at 76-80 % of the fp32 GEMM peak and a one-particle
+ * call (206 rows) at 62-64 %; this kernel, interleaved with them, at 84-90 % and 78-81 % (three
+ * runs of benchmarks/network_paths_speed.py). Prefetching the next member's weights into L2 during
+ * a thread's last units of a member was tried and gained nothing (the hardware prefetchers keep up).
  * A work unit is one member's block of up to ROWS rows carried through all layers: its activations
  * (ROWS x 256 fp32, 12 KiB) stay in L1, the member's weights (about 1 MiB) stream from L2, each
  * weight vector loaded once per block of rows, and there is one OpenMP fork per network call.
