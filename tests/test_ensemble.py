@@ -218,6 +218,17 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
         relu.network(x)
 
 
+def _assert_a_copy_runs_its_own_weights(kernel, packed, x):
+    """A copy of packed weights (a deepcopy or pickle of the model carries them) computes with its
+    own tensors, not with the original's addresses: the original is zeroed before it runs."""
+    want = kernel.forward(x, packed, 14)
+    copied = copy.deepcopy(packed)
+    for w, b in packed.layers:
+        w.zero_(), b.zero_()
+    torch.testing.assert_close(kernel.forward(x, copied, 14), want, rtol=0, atol=0)
+    assert not torch.equal(kernel.forward(x, packed, 14), want)  # (the zeroed weights ran)
+
+
 def test_amx_weights_are_packed_as_tiles_of_input_pairs():
     """The AMX kernel's layout (csrc/amx_network.c), checked element by element on any CPU: tile
     (nb, kb) of member l holds W[l, 32 kb + 2 r + t, 16 nb + j] at [r, 2 j + t]; the padding to
@@ -271,15 +282,7 @@ def test_amx_network_computes_the_bf16_network_on_every_row_count():
         model.inference_path, model.planning_dtype = "amx-network", None
         with pytest.raises(RuntimeError, match="'amx-network' runs bf16 with nn.SiLU on an AMX CPU: got torch.float32"):
             model.network(x)
-        # a copy of packed weights (a deepcopy or pickle of the model carries them) computes with
-        # its own tensors, not with the original's addresses: the original is zeroed before it runs
-        packed = model._packed_network("amx-network", None)
-        want = amx_network.forward(x, packed, 14)
-        copied = copy.deepcopy(packed)
-        for w, b in packed.layers:
-            w.zero_(), b.zero_()
-        torch.testing.assert_close(amx_network.forward(x, copied, 14), want, rtol=0, atol=0)
-        assert not torch.equal(amx_network.forward(x, packed, 14), want)  # (the zeroed weights ran)
+        _assert_a_copy_runs_its_own_weights(amx_network, model._packed_network("amx-network", None), x)
     w, b = amx_network.pack_layer(torch.randn(5, 10, 32), torch.randn(5, 32))
     with pytest.raises(ValueError, match=r"layer 0 is \(5, 2, 1, 16, 32\) torch.float32 .* expected pack_layer's"):
         amx_network.PackedNetwork([(w.float(), b)], 10)  # the kernel reads raw addresses: never a wrong layout
@@ -350,14 +353,7 @@ def test_fma_network_computes_the_fp32_network_on_every_row_count_and_instructio
         with pytest.raises(RuntimeError, match="'fma-network' runs fp32 with nn.SiLU .* got torch.bfloat16"):
             model.network(x)
         model.planning_dtype = None
-        # a copy of packed weights computes with its own tensors, not the original's addresses
-        packed = model._packed_network("fma-network", None)
-        want = fma_network.forward(x, packed, 14)
-        copied = copy.deepcopy(packed)
-        for w, b in packed.layers:
-            w.zero_(), b.zero_()
-        torch.testing.assert_close(fma_network.forward(x, copied, 14), want, rtol=0, atol=0)
-        assert not torch.equal(fma_network.forward(x, packed, 14), want)  # (the zeroed weights ran)
+        _assert_a_copy_runs_its_own_weights(fma_network, model._packed_network("fma-network", None), x)
     w, b = fma_network.pack_layer(torch.randn(5, 10, 32), torch.randn(5, 32))
     with pytest.raises(ValueError, match=r"layer 0 is \(5, 1, 10, 32\) torch.bfloat16 .* expected pack_layer's"):
         fma_network.PackedNetwork([(w.bfloat16(), b)], 10)  # the kernel reads raw addresses: never a wrong layout

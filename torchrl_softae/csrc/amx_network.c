@@ -29,9 +29,6 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-#ifdef _OPENMP
-#include <omp.h>
-#endif
 
 #if defined(__x86_64__) && defined(__GNUC__) && defined(__linux__)
 #include <cpuid.h>
@@ -42,19 +39,11 @@
 #include "silu_bf16grade.h"
 #endif
 
-#define UNIT_ROWS 32  /* rows of one work unit: two 16-row tiles */
-#define MAX_LAYERS 16
-#define TILE_ELEMS 512 /* bf16 values in one 16 x 32 weight tile */
+#define KERNEL_NAME "amx_network"
+#include "whole_network.h"
 
-typedef struct {
-    int layers;
-    int64_t n, d_in, out_cols, members;
-    const float *x;
-    float *out;
-    const uint16_t *weight[MAX_LAYERS];
-    const float *bias[MAX_LAYERS];
-    int64_t kp[MAX_LAYERS], mp[MAX_LAYERS];
-} network;
+#define UNIT_ROWS 32  /* rows of one work unit: two 16-row tiles */
+#define TILE_ELEMS 512 /* bf16 values in one 16 x 32 weight tile */
 
 static int AVAILABLE = 0;      /* the CPU has the instructions and Linux granted the tile state */
 static const char *WHY_NOT = "not an x86-64 Linux build";
@@ -160,10 +149,10 @@ AVX512 static void load_input(const float *x, int64_t d_in, int64_t row0, int ro
 AMX static void run_unit(const network *net, int64_t member, int64_t row0, uint16_t *a, uint16_t *b, float *c) {
     const int rows = (int)(net->n - row0 < UNIT_ROWS ? net->n - row0 : UNIT_ROWS);
     const int two = rows > 16;
-    load_input(net->x, net->d_in, row0, rows, a, net->kp[0]);
+    load_input(net->x, net->d_in, row0, rows, a, net->in[0]);
     for (int i = 0; i < net->layers; i++) {
-        const int64_t kp = net->kp[i], mp = net->mp[i], kb_count = kp / 32;
-        const uint16_t *w = net->weight[i] + member * mp * kp;
+        const int64_t kp = net->in[i], mp = net->padded_out[i], kb_count = kp / 32;
+        const uint16_t *w = (const uint16_t *)net->weight[i] + member * mp * kp;
         const float *bias = net->bias[i] + member * mp;
         const int last = i == net->layers - 1;
         for (int64_t col0 = 0; col0 < mp; col0 += 32) {
@@ -182,9 +171,16 @@ AMX static void run_unit(const network *net, int64_t member, int64_t row0, uint1
     }
 }
 
+/* what a thread's range of units needs besides the range */
+typedef struct {
+    const network *net;
+    int64_t blocks, width;
+} units_job;
+
 /* 0 on success, -1 where this thread's scratch could not be allocated (its units not computed) */
-AMX static int run_units(const network *net, int64_t first_unit, int64_t last_unit, int64_t blocks, int64_t width) {
-    uint16_t *a = aligned_alloc(64, (size_t)(2 * UNIT_ROWS * width * 2));
+AMX static int run_units(const void *context, int64_t first_unit, int64_t last_unit) {
+    const units_job *job = context;
+    uint16_t *a = aligned_alloc(64, (size_t)(2 * UNIT_ROWS * job->width * 2));
     float *c = aligned_alloc(64, UNIT_ROWS * 32 * sizeof(float));
     if (a == NULL || c == NULL) {
         free(a);
@@ -193,7 +189,7 @@ AMX static int run_units(const network *net, int64_t first_unit, int64_t last_un
     }
     configure_tiles();
     for (int64_t u = first_unit; u < last_unit; u++)
-        run_unit(net, u / blocks, (u % blocks) * UNIT_ROWS, a, a + UNIT_ROWS * width, c);
+        run_unit(job->net, u / job->blocks, (u % job->blocks) * UNIT_ROWS, a, a + UNIT_ROWS * job->width, c);
     _tile_release();
     free(a);
     free(c);
@@ -202,26 +198,12 @@ AMX static int run_units(const network *net, int64_t first_unit, int64_t last_un
 
 /* 0 on success, -1 where a thread could not allocate its scratch (the output is then incomplete) */
 static int forward(const network *net, int threads) {
-    int64_t width = 0;
+    units_job job = {net, (net->n + UNIT_ROWS - 1) / UNIT_ROWS, 0};
     for (int i = 0; i < net->layers; i++) {
-        if (net->kp[i] > width) width = net->kp[i];
-        if (net->mp[i] > width) width = net->mp[i];
+        if (net->in[i] > job.width) job.width = net->in[i];
+        if (net->padded_out[i] > job.width) job.width = net->padded_out[i];
     }
-    const int64_t blocks = (net->n + UNIT_ROWS - 1) / UNIT_ROWS, units = net->members * blocks;
-    if (threads > units) threads = (int)units;
-    if (threads <= 1) return run_units(net, 0, units, blocks, width);
-    int failed = 0;
-    /* contiguous ranges of units per thread: a thread's units share members, so their weights */
-#pragma omp parallel num_threads(threads) reduction(| : failed)
-    {
-#ifdef _OPENMP
-        const int64_t t = omp_get_thread_num();
-#else
-        const int64_t t = 0;
-#endif
-        failed |= run_units(net, units * t / threads, units * (t + 1) / threads, blocks, width) != 0;
-    }
-    return failed ? -1 : 0;
+    return run_parallel(net->members * job.blocks, threads, run_units, &job);
 }
 
 static void detect(void) {
@@ -254,89 +236,16 @@ static int forward(const network *net, int threads) {
 static void detect(void) {}
 #endif
 
-static int read_addresses(PyObject *seq, int layers, void **out, const char *what) {
-    if (!PyTuple_Check(seq) || PyTuple_GET_SIZE(seq) != layers) {
-        PyErr_Format(PyExc_ValueError, "amx_network.forward: %s must be a tuple of %d values", what, layers);
-        return -1;
-    }
-    for (int i = 0; i < layers; i++) {
-        out[i] = PyLong_AsVoidPtr(PyTuple_GET_ITEM(seq, i));
-        if (out[i] == NULL) {
-            if (!PyErr_Occurred()) PyErr_Format(PyExc_ValueError, "amx_network.forward: %s %d is a null address", what, i);
-            return -1;
-        }
-    }
-    return 0;
-}
-
-static int read_sizes(PyObject *seq, int layers, int64_t *out, const char *what) {
-    if (!PyTuple_Check(seq) || PyTuple_GET_SIZE(seq) != layers) {
-        PyErr_Format(PyExc_ValueError, "amx_network.forward: %s must be a tuple of %d values", what, layers);
-        return -1;
-    }
-    for (int i = 0; i < layers; i++) {
-        out[i] = PyLong_AsLongLong(PyTuple_GET_ITEM(seq, i));
-        if (out[i] == -1 && PyErr_Occurred()) return -1;
-        if (out[i] <= 0 || out[i] % 32) {
-            PyErr_Format(PyExc_ValueError, "amx_network.forward: %s %d is %lld, expected a positive multiple of 32",
-                         what, i, (long long)out[i]);
-            return -1;
-        }
-    }
-    return 0;
-}
-
 static PyObject *py_forward(PyObject *self, PyObject *args) {
-    unsigned long long x, out;
-    long long n, d_in, out_cols, members;
-    PyObject *weights, *biases, *kps, *mps;
-    int threads;
     network net;
+    int threads;
     (void)self;
-    if (!PyArg_ParseTuple(args, "KLLKLLOOOOi", &x, &n, &d_in, &out, &out_cols, &members, &weights, &biases, &kps,
-                          &mps, &threads))
-        return NULL;
+    if (parse_network(args, 32, 0, &net, &threads) < 0) return NULL;
     if (!AVAILABLE) {
         PyErr_Format(PyExc_RuntimeError, "amx_network.forward: not available here (%s)", WHY_NOT);
         return NULL;
     }
-    if (!PyTuple_Check(weights) || PyTuple_GET_SIZE(weights) < 1 || PyTuple_GET_SIZE(weights) > MAX_LAYERS) {
-        PyErr_Format(PyExc_ValueError, "amx_network.forward: weights must be a tuple of 1 to %d addresses", MAX_LAYERS);
-        return NULL;
-    }
-    net.layers = (int)PyTuple_GET_SIZE(weights);
-    if (read_addresses(weights, net.layers, (void **)net.weight, "weight") < 0 ||
-        read_addresses(biases, net.layers, (void **)net.bias, "bias") < 0 ||
-        read_sizes(kps, net.layers, net.kp, "padded in-features") < 0 ||
-        read_sizes(mps, net.layers, net.mp, "padded out-features") < 0)
-        return NULL;
-    for (int i = 1; i < net.layers; i++)
-        if (net.kp[i] != net.mp[i - 1]) {
-            PyErr_Format(PyExc_ValueError, "amx_network.forward: layer %d takes %lld padded inputs, expected %lld", i,
-                         (long long)net.kp[i], (long long)net.mp[i - 1]);
-            return NULL;
-        }
-    if (n < 0 || members < 1 || d_in < 1 || d_in > net.kp[0] || out_cols < 1 || out_cols > net.mp[net.layers - 1] ||
-        (n > 0 && (x == 0 || out == 0))) {
-        PyErr_Format(PyExc_ValueError,
-                     "amx_network.forward: %lld rows of %lld inputs, %lld outputs, %lld members: expected inputs <= "
-                     "%lld, outputs <= %lld, at least one member and non-null buffers",
-                     n, d_in, out_cols, members, (long long)net.kp[0], (long long)net.mp[net.layers - 1]);
-        return NULL;
-    }
-    if (n == 0) Py_RETURN_NONE;
-    net.n = n;
-    net.d_in = d_in;
-    net.out_cols = out_cols;
-    net.members = members;
-    net.x = (const float *)(uintptr_t)x;
-    net.out = (float *)(uintptr_t)out;
-    int status;
-    Py_BEGIN_ALLOW_THREADS
-    status = forward(&net, threads < 1 ? 1 : threads);
-    Py_END_ALLOW_THREADS
-    if (status != 0) return PyErr_NoMemory(); /* never a silently incomplete output */
-    Py_RETURN_NONE;
+    return call_forward(&net, threads, forward);
 }
 
 static PyObject *py_available(PyObject *self, PyObject *unused) {

@@ -30,9 +30,6 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-#ifdef _OPENMP
-#include <omp.h>
-#endif
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #include <immintrin.h>
@@ -40,20 +37,12 @@
 #include "silu_fp32.h"
 #endif
 
-#define PANEL 32 /* output columns per packed weight panel */
-#define MAX_LAYERS 16
+#define KERNEL_NAME "fma_network"
+#include "whole_network.h"
+
+#define PANEL 32    /* output columns per packed weight panel */
 #define ROWS_512 12 /* rows per block, AVX-512: 12 x 32 accumulators = 24 of the 32 registers */
 #define ROWS_256 6  /* rows per block, AVX2: 6 x 16 accumulators = 12 of the 16 registers */
-
-typedef struct {
-    int layers;
-    int64_t n, d_in, out_cols, members;
-    const float *x;
-    float *out;
-    const float *weight[MAX_LAYERS];
-    const float *bias[MAX_LAYERS];
-    int64_t k[MAX_LAYERS], mp[MAX_LAYERS];
-} network;
 
 /* where a block's results go: a hidden layer's SiLU into the next layer's input buffer (all 32
  * columns, row stride `stride`), or the last layer's first `cols` columns of the output from
@@ -207,8 +196,8 @@ static void run_unit(const network *net, const variant *v, int64_t member, int64
     const float *in = net->x + row0 * net->d_in;
     int64_t lda = net->d_in;
     for (int i = 0; i < net->layers; i++) {
-        const int64_t k = net->k[i], mp = net->mp[i];
-        const float *w = net->weight[i] + member * mp * k, *bias = net->bias[i] + member * mp;
+        const int64_t k = net->in[i], mp = net->padded_out[i];
+        const float *w = (const float *)net->weight[i] + member * mp * k, *bias = net->bias[i] + member * mp;
         const int last = i == net->layers - 1;
         epilogue e = {last ? net->out + (member * net->n + row0) * net->out_cols : b, width, 0, net->out_cols, !last};
         for (int64_t col0 = 0; col0 < mp; col0 += PANEL) {
@@ -225,17 +214,26 @@ static void run_unit(const network *net, const variant *v, int64_t member, int64
     }
 }
 
+/* what a thread's range of units needs besides the range */
+typedef struct {
+    const network *net;
+    const variant *v;
+    int64_t blocks, width;
+} units_job;
+
 /* 0 on success, -1 where this thread's scratch could not be allocated (its units not computed).
  * A member's rows are split into `blocks` blocks of nearly equal size (at most the variant's rows
  * each): 206 rows run as 8 blocks of 12 and 10 of 11, not 17 of 12 and one of 2. */
-static int run_units(const network *net, const variant *v, int64_t first_unit, int64_t last_unit, int64_t blocks,
-                     int64_t width) {
-    float *a = aligned_alloc(64, (size_t)(2 * v->rows * width) * sizeof(float));
+static int run_units(const void *context, int64_t first_unit, int64_t last_unit) {
+    const units_job *job = context;
+    const network *net = job->net;
+    const int64_t blocks = job->blocks, width = job->width, rows = job->v->rows;
+    float *a = aligned_alloc(64, (size_t)(2 * rows * width) * sizeof(float));
     if (a == NULL) return -1;
     for (int64_t u = first_unit; u < last_unit; u++) {
         const int64_t member = u / blocks, block = u % blocks;
         const int64_t row0 = net->n * block / blocks, row1 = net->n * (block + 1) / blocks;
-        run_unit(net, v, member, row0, (int)(row1 - row0), a, a + v->rows * width, width);
+        run_unit(net, job->v, member, row0, (int)(row1 - row0), a, a + rows * width, width);
     }
     free(a);
     return 0;
@@ -243,112 +241,24 @@ static int run_units(const network *net, const variant *v, int64_t first_unit, i
 
 /* 0 on success, -1 where a thread could not allocate its scratch (the output is then incomplete) */
 static int forward(const network *net, int threads) {
-    const variant *v = &VARIANTS[CURRENT];
-    int64_t width = 0;
+    units_job job = {net, &VARIANTS[CURRENT], 0, 0};
     for (int i = 0; i < net->layers; i++)
-        if (net->mp[i] > width) width = net->mp[i];
-    const int64_t blocks = (net->n + v->rows - 1) / v->rows, units = net->members * blocks;
-    if (threads > units) threads = (int)units;
-    if (threads <= 1) return run_units(net, v, 0, units, blocks, width);
-    int failed = 0;
-    /* contiguous ranges of units per thread: a thread's units share members, so their weights */
-#pragma omp parallel num_threads(threads) reduction(| : failed)
-    {
-#ifdef _OPENMP
-        const int64_t t = omp_get_thread_num();
-#else
-        const int64_t t = 0;
-#endif
-        failed |= run_units(net, v, units * t / threads, units * (t + 1) / threads, blocks, width) != 0;
-    }
-    return failed ? -1 : 0;
-}
-
-static int read_addresses(PyObject *seq, int layers, void **out, const char *what) {
-    if (!PyTuple_Check(seq) || PyTuple_GET_SIZE(seq) != layers) {
-        PyErr_Format(PyExc_ValueError, "fma_network.forward: %s must be a tuple of %d values", what, layers);
-        return -1;
-    }
-    for (int i = 0; i < layers; i++) {
-        out[i] = PyLong_AsVoidPtr(PyTuple_GET_ITEM(seq, i));
-        if (out[i] == NULL) {
-            if (!PyErr_Occurred()) PyErr_Format(PyExc_ValueError, "fma_network.forward: %s %d is a null address", what, i);
-            return -1;
-        }
-    }
-    return 0;
-}
-
-/* sizes must be positive, and multiples of `multiple` */
-static int read_sizes(PyObject *seq, int layers, int64_t *out, int64_t multiple, const char *what) {
-    if (!PyTuple_Check(seq) || PyTuple_GET_SIZE(seq) != layers) {
-        PyErr_Format(PyExc_ValueError, "fma_network.forward: %s must be a tuple of %d values", what, layers);
-        return -1;
-    }
-    for (int i = 0; i < layers; i++) {
-        out[i] = PyLong_AsLongLong(PyTuple_GET_ITEM(seq, i));
-        if (out[i] == -1 && PyErr_Occurred()) return -1;
-        if (out[i] <= 0 || out[i] % multiple) {
-            PyErr_Format(PyExc_ValueError, "fma_network.forward: %s %d is %lld, expected a positive multiple of %lld",
-                         what, i, (long long)out[i], (long long)multiple);
-            return -1;
-        }
-    }
-    return 0;
+        if (net->padded_out[i] > job.width) job.width = net->padded_out[i];
+    job.blocks = (net->n + job.v->rows - 1) / job.v->rows;
+    return run_parallel(net->members * job.blocks, threads, run_units, &job);
 }
 
 static PyObject *py_forward(PyObject *self, PyObject *args) {
-    unsigned long long x, out;
-    long long n, d_in, out_cols, members;
-    PyObject *weights, *biases, *ks, *mps;
-    int threads;
     network net;
+    int threads;
     (void)self;
-    if (!PyArg_ParseTuple(args, "KLLKLLOOOOi", &x, &n, &d_in, &out, &out_cols, &members, &weights, &biases, &ks, &mps,
-                          &threads))
-        return NULL;
+    if (parse_network(args, 1, 1, &net, &threads) < 0) return NULL;
     if (CURRENT < 0) {
         PyErr_SetString(PyExc_RuntimeError, "fma_network.forward: not available here (the CPU has neither AVX-512F "
                                             "nor AVX2 with FMA)");
         return NULL;
     }
-    if (!PyTuple_Check(weights) || PyTuple_GET_SIZE(weights) < 1 || PyTuple_GET_SIZE(weights) > MAX_LAYERS) {
-        PyErr_Format(PyExc_ValueError, "fma_network.forward: weights must be a tuple of 1 to %d addresses", MAX_LAYERS);
-        return NULL;
-    }
-    net.layers = (int)PyTuple_GET_SIZE(weights);
-    if (read_addresses(weights, net.layers, (void **)net.weight, "weight") < 0 ||
-        read_addresses(biases, net.layers, (void **)net.bias, "bias") < 0 ||
-        read_sizes(ks, net.layers, net.k, 1, "in-features") < 0 ||
-        read_sizes(mps, net.layers, net.mp, PANEL, "padded out-features") < 0)
-        return NULL;
-    for (int i = 1; i < net.layers; i++)
-        if (net.k[i] != net.mp[i - 1]) {
-            PyErr_Format(PyExc_ValueError, "fma_network.forward: layer %d takes %lld inputs, expected %lld", i,
-                         (long long)net.k[i], (long long)net.mp[i - 1]);
-            return NULL;
-        }
-    if (n < 0 || members < 1 || d_in != net.k[0] || out_cols < 1 || out_cols > net.mp[net.layers - 1] ||
-        (n > 0 && (x == 0 || out == 0))) {
-        PyErr_Format(PyExc_ValueError,
-                     "fma_network.forward: %lld rows of %lld inputs, %lld outputs, %lld members: expected %lld inputs, "
-                     "outputs <= %lld, at least one member and non-null buffers",
-                     n, d_in, out_cols, members, (long long)net.k[0], (long long)net.mp[net.layers - 1]);
-        return NULL;
-    }
-    if (n == 0) Py_RETURN_NONE;
-    net.n = n;
-    net.d_in = d_in;
-    net.out_cols = out_cols;
-    net.members = members;
-    net.x = (const float *)(uintptr_t)x;
-    net.out = (float *)(uintptr_t)out;
-    int status;
-    Py_BEGIN_ALLOW_THREADS
-    status = forward(&net, threads < 1 ? 1 : threads);
-    Py_END_ALLOW_THREADS
-    if (status != 0) return PyErr_NoMemory(); /* never a silently incomplete output */
-    Py_RETURN_NONE;
+    return call_forward(&net, threads, forward);
 }
 
 #include "isa_variants.h"

@@ -78,8 +78,18 @@ class PackedNetworkBase:
 
 
 def run(extension: ModuleType, network: PackedNetworkBase, x: torch.Tensor, out_features: int) -> torch.Tensor:
-    """One call of a whole-network ``extension`` on ``x`` ``(N, in_features)`` fp32 (the input
-    every member shares): ``(L, N, out_features)`` fp32."""
+    """One call of a whole-network ``extension``.
+
+    Args:
+        extension: the compiled kernel (its ``forward`` takes the addresses of ``x``, the output
+            and ``network``'s packed layers).
+        network: the packed layers.
+        x: ``(N, network.in_features)`` fp32 on the CPU, the input every member shares.
+        out_features: the last layer's outputs to return (its first ``C``).
+
+    Returns:
+        ``(L, N, C)`` fp32.
+    """
     if x.dim() != 2 or x.shape[1] != network.in_features or x.dtype != torch.float32 or x.device.type != "cpu":
         raise ValueError(f"{network.kernel}.forward: x {tuple(x.shape)} {x.dtype} on {x.device}, expected "
                          f"(N, {network.in_features}) float32 on the CPU")

@@ -104,16 +104,12 @@ def pack_network(layers: list[tuple[torch.Tensor, torch.Tensor]]) -> PackedNetwo
 
 
 def forward(x: torch.Tensor, network: PackedNetwork, out_features: int) -> torch.Tensor:
-    """The network ``silu(... silu(x W_0 + b_0) ...) W_n + b_n`` of every member on a shared input.
+    """The network ``silu(... silu(x W_0 + b_0) ...) W_n + b_n`` of every member on the input ``x``
+    ``(N, K)`` fp32 they share, the last layer's first ``out_features`` (``C``) outputs
+    (:func:`~._fused_network.run`).
 
-    Args:
-        x: ``(N, K)`` fp32, the input all members share.
-        network: the packed layers (:class:`PackedNetwork`).
-        out_features: the last layer's outputs to return (its first ``C``).
-
-    Returns:
-        ``(L, N, C)`` fp32. Matmuls in bf16 with fp32 accumulation; hidden activations rounded to
-        bf16 (computed to 1e-4 relative before rounding); the output is not rounded.
+    Returns ``(L, N, C)`` fp32: matmuls in bf16 with fp32 accumulation, hidden activations rounded
+    to bf16 (computed to 1e-4 relative before rounding); the output is not rounded.
     """
     if not available():
         raise RuntimeError(f"amx_network.forward: not available here ({why_not()})")

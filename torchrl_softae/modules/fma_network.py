@@ -117,16 +117,12 @@ class PackedNetwork(PackedNetworkBase):
 
 
 def forward(x: torch.Tensor, network: PackedNetwork, out_features: int) -> torch.Tensor:
-    """The network ``silu(... silu(x W_0 + b_0) ...) W_n + b_n`` of every member on a shared input.
+    """The network ``silu(... silu(x W_0 + b_0) ...) W_n + b_n`` of every member on the input ``x``
+    ``(N, K)`` fp32 they share, the last layer's first ``out_features`` (``C``) outputs
+    (:func:`~._fused_network.run`).
 
-    Args:
-        x: ``(N, K)`` fp32, the input all members share.
-        network: the packed layers (:class:`PackedNetwork`).
-        out_features: the last layer's outputs to return (its first ``C``).
-
-    Returns:
-        ``(L, N, C)`` fp32, within a few 1e-7 relative of torch's fp32 layers per layer (other
-        summation order; the SiLU's exp polynomial).
+    Returns ``(L, N, C)`` fp32, within a few 1e-7 relative of torch's fp32 layers per layer (another
+    summation order; the SiLU's exp polynomial).
     """
     if not available():
         raise RuntimeError(f"fma_network.forward: not available here ({why_not()})")
