@@ -201,7 +201,9 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
         assert model.available_inference_paths() == expected
         usable = model.available_inference_paths(torch.float32)  # amx-network is bf16 only
         assert usable == tuple(p for p in expected if p != "amx-network")
-        assert "fma-network" not in model.available_inference_paths(torch.bfloat16)  # fp32 only
+        # fma-network computes bf16 where the CPU has AVX512-BF16
+        assert ("fma-network" in model.available_inference_paths(torch.bfloat16)) == fma_network.available(
+            torch.bfloat16)
         for forced in usable:
             monkeypatch.setenv("SOFTAE_INFERENCE_PATH", forced)
             assert model._inference_path(x, torch.float32, None) == forced
@@ -218,15 +220,26 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
         relu.network(x)
 
 
-def _assert_a_copy_runs_its_own_weights(kernel, packed, x):
+def _torch_bf16_layers(model, x):
+    """The network as torch's bf16 paths compute it: bf16 matmul inputs, fp32 accumulation, bias and
+    SiLU, hidden activations rounded to bf16, the last layer in fp32."""
+    h = x.to(torch.bfloat16)
+    for i, layer in enumerate(model.layers):
+        y = torch.einsum("nk,lkm->lnm" if h.dim() == 2 else "lnk,lkm->lnm", h.float(),
+                         layer.weight.to(torch.bfloat16).float()) + layer.bias.float()
+        h = torch.nn.functional.silu(y).to(torch.bfloat16) if i < len(model.layers) - 1 else y
+    return h
+
+
+def _assert_a_copy_runs_its_own_weights(kernel, packed, x, outputs=14):
     """A copy of packed weights (a deepcopy or pickle of the model carries them) computes with its
     own tensors, not with the original's addresses: the original is zeroed before it runs."""
-    want = kernel.forward(x, packed, 14)
+    want = kernel.forward(x, packed, outputs)
     copied = copy.deepcopy(packed)
     for w, b in packed.layers:
         w.zero_(), b.zero_()
-    torch.testing.assert_close(kernel.forward(x, copied, 14), want, rtol=0, atol=0)
-    assert not torch.equal(kernel.forward(x, packed, 14), want)  # (the zeroed weights ran)
+    torch.testing.assert_close(kernel.forward(x, copied, outputs), want, rtol=0, atol=0)
+    assert not torch.equal(kernel.forward(x, packed, outputs), want)  # (the zeroed weights ran)
 
 
 def test_amx_weights_are_packed_as_tiles_of_input_pairs():
@@ -261,11 +274,7 @@ def test_amx_network_computes_the_bf16_network_on_every_row_count():
             for n, t in [(1, 1), (16, 2), (17, 2), (33, 1), (70, 2), (300, 2)]:
                 torch.set_num_threads(t)
                 x = torch.randn(n, 10)
-                h = x.to(torch.bfloat16)
-                for i, layer in enumerate(model.layers):
-                    y = torch.einsum("nk,lkm->lnm" if h.dim() == 2 else "lnk,lkm->lnm", h.float(),
-                                     layer.weight.to(torch.bfloat16).float()) + layer.bias.float()
-                    h = torch.nn.functional.silu(y).to(torch.bfloat16) if i < len(model.layers) - 1 else y
+                h = _torch_bf16_layers(model, x)
                 out = model._run_path("amx-network", x, torch.bfloat16, None)
                 assert out.shape == (5, n, 14) and out.dtype == torch.float32
                 torch.testing.assert_close(out, h, rtol=0.02, atol=0.02)
@@ -282,7 +291,7 @@ def test_amx_network_computes_the_bf16_network_on_every_row_count():
         model.inference_path, model.planning_dtype = "amx-network", None
         with pytest.raises(RuntimeError, match="'amx-network' runs bf16 with nn.SiLU on an AMX CPU: got torch.float32"):
             model.network(x)
-        _assert_a_copy_runs_its_own_weights(amx_network, model._packed_network("amx-network", None), x)
+        _assert_a_copy_runs_its_own_weights(amx_network, model._packed_network("amx-network", torch.bfloat16, None), x)
     w, b = amx_network.pack_layer(torch.randn(5, 10, 32), torch.randn(5, 32))
     with pytest.raises(ValueError, match=r"layer 0 is \(5, 2, 1, 16, 32\) torch.float32 .* expected pack_layer's"):
         amx_network.PackedNetwork([(w.float(), b)], 10)  # the kernel reads raw addresses: never a wrong layout
@@ -307,6 +316,16 @@ def test_fma_weights_are_packed_as_panels_of_32_outputs():
     assert bias[:, 50:].abs().sum() == 0
     with pytest.raises(ValueError, match="inputs=30, expected at least the weight's 40"):
         fma_network.pack_layer(w, b, inputs=30)
+    # bf16: pairs of inputs side by side, [p, i, j, t] = W[2 i + t, 32 p + j]; 41 inputs -> 42
+    w = torch.randn(2, 41, 50)
+    packed, bias = fma_network.pack_layer(w, b, dtype=torch.bfloat16)
+    assert packed.shape == (2, 2, 21, 32, 2) and packed.dtype == torch.bfloat16
+    for l, p, i, j, t in [(0, 0, 0, 0, 0), (1, 1, 20, 17, 0), (0, 1, 7, 0, 1), (1, 0, 13, 31, 1)]:
+        assert packed[l, p, i, j, t] == w[l, 2 * i + t, 32 * p + j].to(torch.bfloat16)
+    assert packed[:, :, 20, :, 1].abs().sum() == 0  # input 41 (padding to pairs)
+    assert packed[:, 1, :, 18:].abs().sum() == 0  # outputs 50..63
+    with pytest.raises(ValueError, match="inputs=43, expected at least the weight's 41 and even"):
+        fma_network.pack_layer(w, b, inputs=43, dtype=torch.bfloat16)
 
 
 @pytest.mark.skipif(not fma_network.available(), reason=f"the FMA network kernel does not run here: {fma_network.why_not()}")
@@ -349,11 +368,11 @@ def test_fma_network_computes_the_fp32_network_on_every_row_count_and_instructio
         mu = model.network(x)[0]
         model.inference_path = "bmm"
         torch.testing.assert_close(mu, model.network(x)[0], rtol=1e-5, atol=1e-5)
-        model.inference_path, model.planning_dtype = "fma-network", torch.bfloat16
-        with pytest.raises(RuntimeError, match="'fma-network' runs fp32 with nn.SiLU .* got torch.bfloat16"):
+        model.inference_path, model.planning_dtype = "fma-network", torch.float16
+        with pytest.raises(RuntimeError, match="'fma-network' runs fp32 .* or bf16 .* got torch.float16"):
             model.network(x)
         model.planning_dtype = None
-        _assert_a_copy_runs_its_own_weights(fma_network, model._packed_network("fma-network", None), x)
+        _assert_a_copy_runs_its_own_weights(fma_network, model._packed_network("fma-network", torch.float32, None), x)
     w, b = fma_network.pack_layer(torch.randn(5, 10, 32), torch.randn(5, 32))
     with pytest.raises(ValueError, match=r"layer 0 is \(5, 1, 10, 32\) torch.bfloat16 .* expected pack_layer's"):
         fma_network.PackedNetwork([(w.bfloat16(), b)], 10)  # the kernel reads raw addresses: never a wrong layout
@@ -361,6 +380,44 @@ def test_fma_network_computes_the_fp32_network_on_every_row_count_and_instructio
         fma_network.PackedNetwork([(w, b)], 9)
     with pytest.raises(ValueError, match=r"x \(40, 9\) torch.float32 on cpu, expected \(N, 10\) float32"):
         fma_network.forward(x[:, :9], fma_network.PackedNetwork([(w, b)], 10), 32)
+
+
+@pytest.mark.skipif(not fma_network.available(torch.bfloat16),
+                    reason=f"the FMA kernel's bf16 form does not run here: {fma_network.why_not(torch.bfloat16)}")
+def test_fma_network_computes_the_bf16_network_on_every_row_count():
+    """The bf16 form (VDPBF16PS) against torch's bf16 layers (bf16 matmul inputs, fp32 accumulation,
+    bias and SiLU, activations rounded to bf16): within a few bf16 roundings, on row counts around
+    its 12-row blocks, odd inputs (padded to pairs) and padded widths; the same bits on one thread and
+    two; the model takes it in bf16 when forced; where the AMX kernel runs too, both agree."""
+    torch.manual_seed(0)
+    model = EnsembleWorldModel(6, 3, num_cells=50, depth=3).eval()  # 9 inputs -> 10, hidden 50 -> 64
+    model.planning_dtype = torch.bfloat16
+    threads = torch.get_num_threads()
+    try:
+        with torch.no_grad():
+            for n in (1, 11, 12, 13, 25, 206):
+                x = torch.randn(n, 9)
+                h = _torch_bf16_layers(model, x)
+                outs = []
+                for t in (1, 2):
+                    torch.set_num_threads(t)
+                    outs.append(model._run_path("fma-network", x, torch.bfloat16, None))
+                assert outs[0].shape == (5, n, 12) and outs[0].dtype == torch.float32
+                torch.testing.assert_close(outs[0], h, rtol=0.02, atol=0.02)
+                torch.testing.assert_close(outs[1], outs[0], rtol=0, atol=0)
+                if amx_network.available():
+                    torch.testing.assert_close(model._run_path("amx-network", x, torch.bfloat16, None), outs[0],
+                                               rtol=0.02, atol=0.02)
+    finally:
+        torch.set_num_threads(threads)
+    model.inference_path = "fma-network"
+    x = torch.randn(40, 9)
+    with torch.no_grad():
+        mu = model.network(x)[0]
+        model.inference_path = "bmm"
+        torch.testing.assert_close(mu, model.network(x)[0], rtol=0.05, atol=0.05)
+        _assert_a_copy_runs_its_own_weights(fma_network, model._packed_network("fma-network", torch.bfloat16, None), x,
+                                            6)
 
 
 def test_the_cache_key_tells_apart_machines_with_the_same_model_name():

@@ -10,7 +10,6 @@ from _envs import PointMassEnv
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules.planners import rollout_returns
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner, MPPIPlanner, colored_noise
-from torchrl_softae.modules.ensemble import _WHOLE_NETWORK_DTYPES
 from torchrl_softae.modules.paths import INFERENCE_PATHS
 
 
@@ -113,8 +112,7 @@ def test_sample_mode_particles_follow_distinct_members():
     assert torch.isfinite(r1).all()
 
 
-# every path that runs bf16 (fma-network is fp32 only)
-@pytest.mark.parametrize("path", [p for p in INFERENCE_PATHS if _WHOLE_NETWORK_DTYPES.get(p) != torch.float32])
+@pytest.mark.parametrize("path", INFERENCE_PATHS)
 def test_bf16_ranking_matches_fp32(path):
     from scipy.stats import spearmanr
 
@@ -127,15 +125,15 @@ def test_bf16_ranking_matches_fp32(path):
     td = TensorDict({"observation": x, "action": a, ("next", "observation"): x + 0.3 * torch.sin(3 * a[:, :1] + x)}, [400])
     EnsembleTrainer(EnsembleLoss(tenv.base_env.world_model), lr=3e-3, epochs=20).fit(td)
     if path not in tenv.base_env.world_model.available_inference_paths(torch.bfloat16):
-        pytest.skip(f"{path} does not run in bf16 here (the compiled SiLU not built, or conv-fused without oneDNN's "
-                    "bf16 convolution: test_ensemble checks the error)")
+        pytest.skip(f"{path} does not run in bf16 here (its kernel not built or not supported by this CPU, or "
+                    "conv-fused without oneDNN's bf16 convolution: test_ensemble checks the error)")
     model = tenv.base_env.world_model
     fp32 = ICEMPlanner(tenv, planning_horizon=5)
     bf16 = ICEMPlanner(tenv, planning_horizon=5, precision="bf16")
     obs = TensorDict({"observation": torch.rand(1, 3) * 2 - 1}, [1])
     acts = torch.rand(1, 300, 5, 5) * 2 - 1
     # every kernel path keeps the ranking (the fp32 reference on the same path where it runs in fp32;
-    # amx-network is bf16 only)
+    # amx-network is bf16 only, fma-network runs both)
     model.inference_path = path if path in model.available_inference_paths(torch.float32) else "auto"
     r32 = fp32.evaluate(obs, acts)
     model.inference_path = path

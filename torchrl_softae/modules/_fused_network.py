@@ -3,7 +3,7 @@
 checked once, with the kernel's arguments prepared, and one call per network call."""
 from __future__ import annotations
 
-from types import ModuleType
+from typing import Callable
 
 import torch
 
@@ -77,12 +77,12 @@ class PackedNetworkBase:
         self.__init__(state["layers"], state["in_features"])
 
 
-def run(extension: ModuleType, network: PackedNetworkBase, x: torch.Tensor, out_features: int) -> torch.Tensor:
-    """One call of a whole-network ``extension``.
+def run(kernel: Callable, network: PackedNetworkBase, x: torch.Tensor, out_features: int) -> torch.Tensor:
+    """One call of a whole-network kernel.
 
     Args:
-        extension: the compiled kernel (its ``forward`` takes the addresses of ``x``, the output
-            and ``network``'s packed layers).
+        kernel: the compiled kernel's entry (it takes the addresses of ``x``, the output and
+            ``network``'s packed layers, csrc/whole_network.h).
         network: the packed layers.
         x: ``(N, network.in_features)`` fp32 on the CPU, the input every member shares.
         out_features: the last layer's outputs to return (its first ``C``).
@@ -96,6 +96,6 @@ def run(extension: ModuleType, network: PackedNetworkBase, x: torch.Tensor, out_
     x = x.contiguous()
     out = torch.empty(network.members, x.shape[0], out_features, dtype=torch.float32)
     with seen_by_profiler(f"torchrl_softae::{network.kernel}"):
-        extension.forward(x.data_ptr(), x.shape[0], x.shape[1], out.data_ptr(), out_features, network.members,
+        kernel(x.data_ptr(), x.shape[0], x.shape[1], out.data_ptr(), out_features, network.members,
                           *network._arguments, torch.get_num_threads())
     return out

@@ -27,9 +27,9 @@ _BLOCK = 32
 _TILE = (16, 32)
 
 
-def available() -> bool:
-    """Whether the extension was built and this CPU and OS run it."""
-    return _amx_network is not None and _amx_network.available()
+def available(dtype: torch.dtype = torch.bfloat16) -> bool:
+    """Whether the extension was built and this CPU and OS run it (in ``dtype``: bf16 only)."""
+    return dtype == torch.bfloat16 and _amx_network is not None and _amx_network.available()
 
 
 def why_not() -> str | None:
@@ -97,9 +97,13 @@ class PackedNetwork(PackedNetworkBase):
         return weight.shape[1] * 16
 
 
-def pack_network(layers: list[tuple[torch.Tensor, torch.Tensor]]) -> PackedNetwork:
+def pack_network(layers: list[tuple[torch.Tensor, torch.Tensor]], dtype: torch.dtype = torch.bfloat16
+                 ) -> PackedNetwork:
     """A whole network, ``[(weight (L, K, M), bias), ...]`` first to last, packed (each layer's
-    inputs and outputs padded to multiples of 32, so each takes the previous one's outputs)."""
+    inputs and outputs padded to multiples of 32, so each takes the previous one's outputs).
+    ``dtype``: the kernel computes in bf16 only."""
+    if dtype != torch.bfloat16:
+        raise ValueError(f"amx_network.pack_network: dtype={dtype}, expected torch.bfloat16 (AMX tiles)")
     return PackedNetwork([pack_layer(w, b) for w, b in layers], layers[0][0].shape[1])
 
 
@@ -113,4 +117,4 @@ def forward(x: torch.Tensor, network: PackedNetwork, out_features: int) -> torch
     """
     if not available():
         raise RuntimeError(f"amx_network.forward: not available here ({why_not()})")
-    return run(_amx_network, network, x, out_features)
+    return run(_amx_network.forward, network, x, out_features)

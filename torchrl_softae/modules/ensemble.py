@@ -53,9 +53,9 @@ def _conv_weight_packer():
 _PACK_CONV_WEIGHT = _conv_weight_packer()
 
 
-#: the inference paths that run the whole network in one kernel call, and the dtype each runs in
+#: the inference paths that run the whole network in one kernel call (``kernel.available(dtype)``
+#: says where and in which dtype: AMX bf16; FMA fp32, and bf16 on AVX512-BF16)
 _WHOLE_NETWORK_KERNELS = {"amx-network": _amx_network, "fma-network": _fma_network}
-_WHOLE_NETWORK_DTYPES = {"amx-network": torch.bfloat16, "fma-network": torch.float32}
 
 
 def _onednn_runs(dtype: torch.dtype) -> bool:
@@ -424,7 +424,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
         runs their kernel (:mod:`.amx_network`, :mod:`.fma_network`). With ``dtype`` (the hidden
         layers' dtype), only those that run in it: ``conv-fused`` also needs an activation oneDNN
         fuses and oneDNN's own convolution in ``dtype`` (bf16 needs AVX512-BW/VL/DQ or
-        AVX-NE-CONVERT); ``amx-network`` is bf16 only, ``fma-network`` fp32 only."""
+        AVX-NE-CONVERT); ``amx-network`` is bf16 only, ``fma-network`` fp32, or bf16 where the CPU has
+        AVX512-BF16."""
         silu = type(self.activation) is nn.SiLU
         usable = tuple(p for p in INFERENCE_PATHS
                        if (not p.endswith("-silu-kernel") or self._silu_kernel_applies())
@@ -433,7 +434,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
             return usable
         return tuple(p for p in usable
                      if (p != "conv-fused" or (self._fused_activation() is not None and _onednn_runs(dtype)))
-                     and (p not in _WHOLE_NETWORK_KERNELS or dtype == _WHOLE_NETWORK_DTYPES[p]))
+                     and (p not in _WHOLE_NETWORK_KERNELS or _WHOLE_NETWORK_KERNELS[p].available(dtype)))
 
     def _inference_path(self, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> str:
         """Grouped convolutions (oneDNN, CPU only), batched matmuls or the AMX kernel for a shared
@@ -447,9 +448,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
                                    f"activation {type(self.activation).__name__}, "
                                    f"{_amx_network.why_not() or 'AMX available'}")
             if forced == "fma-network" and forced not in self.available_inference_paths(dtype):
-                raise RuntimeError(f"inference path 'fma-network' runs fp32 with nn.SiLU on a CPU with AVX-512F or "
-                                   f"AVX2+FMA: got {dtype}, activation {type(self.activation).__name__}, "
-                                   f"{_fma_network.why_not() or 'the kernel runs here'}")
+                raise RuntimeError(f"inference path 'fma-network' runs fp32 (AVX-512F or AVX2+FMA) or bf16 "
+                                   f"(AVX512-BF16) with nn.SiLU: got {dtype}, activation "
+                                   f"{type(self.activation).__name__}, {_fma_network.why_not(dtype) or 'it runs here'}")
             if forced not in self.available_inference_paths():
                 raise RuntimeError(f"inference path {forced!r} needs nn.SiLU and the compiled kernel "
                                    f"(activation {type(self.activation).__name__}, kernel built: {_silu_kernel.available()})")
@@ -476,7 +477,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         """The network on a shared ``(N, in)`` input (or ``bmm`` on ``(L, N, in)``) by inference ``path``."""
         silu_kernel = path.endswith("-silu-kernel")
         if path in _WHOLE_NETWORK_KERNELS:
-            return self._network_whole(path, x, cols)
+            return self._network_whole(path, x, dtype, cols)
         if path.startswith("conv"):
             return self._network_grouped_conv(x, dtype, cols, fused=path == "conv-fused", silu_kernel=silu_kernel)
         return self._network_bmm(x, dtype, cols, silu_kernel=silu_kernel)
@@ -591,22 +592,23 @@ class EnsembleWorldModel(TensorDictModuleBase):
 
         return self._cached(layer, ("conv", dtype, cols, bucket), build)
 
-    def _network_whole(self, path: str, x: torch.Tensor, cols: int | None) -> torch.Tensor:
+    def _network_whole(self, path: str, x: torch.Tensor, dtype: torch.dtype, cols: int | None) -> torch.Tensor:
         """Inference on a shared ``(N, in)`` input in one call of a whole-network kernel
-        (:data:`_WHOLE_NETWORK_KERNELS`): every member's rows through all layers, the SiLU fused
-        into each hidden layer; ``amx-network`` in bf16 AMX tiles with fp32 accumulation,
-        ``fma-network`` in fp32 FMA register blocks. Returns ``(L, N, cols or out)`` in fp32 (the
-        last layer is not rounded)."""
+        (:data:`_WHOLE_NETWORK_KERNELS`) in ``dtype``: every member's rows through all layers, the
+        SiLU fused into each hidden layer; ``amx-network`` in bf16 AMX tiles, ``fma-network`` in
+        fp32 or bf16 register blocks, fp32 accumulation. Returns ``(L, N, cols or out)`` in fp32
+        (the last layer is not rounded)."""
         kernel = _WHOLE_NETWORK_KERNELS[path]
-        return kernel.forward(x.float(), self._packed_network(path, cols), cols or self.layers[-1].out_features)
+        return kernel.forward(x.float(), self._packed_network(path, dtype, cols), cols or self.layers[-1].out_features)
 
-    def _packed_network(self, path: str, cols: int | None):
-        """All layers packed for ``path``'s kernel (the last one's first ``cols`` outputs), cached
-        until a parameter changes (as :meth:`_cached`: its version counter moves; ``.to()`` and
-        fused optimizer steps clear the cache). One check of the version counters of the
-        parameters the entry holds per call: reading ten parameters through the modules cost 7 us
-        of a 290 us network call."""
-        hit = self._inference_cache.get(("whole network", path, cols))
+    def _packed_network(self, path: str, dtype: torch.dtype, cols: int | None):
+        """All layers packed for ``path``'s kernel in ``dtype`` (the last one's first ``cols``
+        outputs), cached until a parameter changes (as :meth:`_cached`: its version counter moves;
+        ``.to()`` and fused optimizer steps clear the cache). One check of the version counters of
+        the parameters the entry holds per call: reading ten parameters through the modules cost
+        7 us of a 290 us network call."""
+        key = ("whole network", path, dtype, cols)
+        hit = self._inference_cache.get(key)
         if hit is not None and all(p._version == v for p, v in hit[0]):
             return hit[1]
         params = [p for layer in self.layers for p in (layer.weight, layer.bias)]
@@ -614,8 +616,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
         if cols is not None:
             w, b = layers[-1]
             layers[-1] = (w[..., :cols], b[..., :cols])
-        packed = _WHOLE_NETWORK_KERNELS[path].pack_network(layers)
-        self._inference_cache[("whole network", path, cols)] = ([(p, p._version) for p in params], packed)
+        packed = _WHOLE_NETWORK_KERNELS[path].pack_network(layers, dtype)
+        self._inference_cache[key] = ([(p, p._version) for p in params], packed)
         return packed
 
     def _kernel_bias(self, layer: EnsembleLinear, k: int) -> torch.Tensor:
