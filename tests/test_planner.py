@@ -29,6 +29,27 @@ def test_colored_noise_unit_variance_and_correlation():
         colored_noise(-1, (2, 3))
 
 
+def test_colored_noise_basis_matches_the_fft():
+    """The planners' short series come from a fixed matrix of the Gaussian coefficients, long ones
+    from the inverse FFT: the same values from the same draws (fp32 rounding), even and odd T,
+    fp32 and fp64, and either form has unit variance."""
+    import importlib
+
+    # the module (the package exports the function under its name)
+    module = importlib.import_module("torchrl_softae.modules.planners.colored_noise")
+
+    for T in (2, 5, 10, 64):
+        for dtype in (torch.float32, torch.float64):
+            fast = module._by_basis(0.25, (300, T), torch.Generator().manual_seed(T), dtype, "cpu")
+            fft = module._by_fft(0.25, (300, T), torch.Generator().manual_seed(T), dtype, "cpu")
+            assert fast.dtype == fft.dtype == dtype
+            torch.testing.assert_close(fast, fft, rtol=1e-5, atol=1e-5)
+    long = colored_noise(1.0, (500, module.MAX_BASIS_T + 1), generator=torch.Generator().manual_seed(0))
+    short = colored_noise(1.0, (500, module.MAX_BASIS_T), generator=torch.Generator().manual_seed(0))
+    for x in (long, short):
+        assert abs(float(x.std()) - 1.0) < 0.2
+
+
 def test_icem_finds_analytic_optimum():
     target = torch.tensor([0.6, -0.3])
     env = PointMassEnv(2, target)
