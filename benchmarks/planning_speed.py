@@ -8,7 +8,12 @@ candidates (K=20), H=10 (H=5 for SoPrA), 2000 model rows per horizon step where 
 used. Every planner is called under ``torch.no_grad()`` as an MPC user would (TorchRL's planners do
 not disable autograd themselves: timed with autograd on they record a graph at every model call).
 The contenders are interleaved (one action of each in turn, ``--repeats`` rounds, at least 5) and
-reported as median and best, so a noisy machine cannot make one ratio out of one lucky call.
+reported as median and best, so a noisy machine cannot make one ratio out of one lucky call. Each
+round takes them in a new order (seeded): in a fixed order a contender always follows the same
+one, and the plan right after a replay of fp32 network calls (``--network-alone``) ran about 10 %
+slower whichever contender it was (two identical SoftAE one-particle bf16 planners: 21.3-21.5 ms
+right after it, 19.0-19.4 ms one place later, 15 rounds per order, AMX Xeon:
+``python benchmarks/order_effect.py``, ``benchmarks/results/order_effect-amx.txt``).
 
   cem-torchrl       TorchRL CEMPlanner over EnsembleModelEnv("sample") + UncertaintyReward, 2000 candidates
   mbrl-icem         mbrl-lib's ICEMOptimizer + GaussianMLP (TS-inf), 200 x 10 particles   [when mbrl imports];
@@ -74,6 +79,7 @@ import contextlib
 import json
 import math
 import platform
+import random
 import statistics
 import time
 import warnings
@@ -668,6 +674,7 @@ def main():
                "normal_kernel_isa": normal_kernel.isa() if kernel_noise else None,
                "moments_kernel_isa": moments_kernel.isa(),
                "threads": args.threads, "allocator": allocator, "precisions": list(precisions),
+               "contender_order": "a new seeded shuffle every round",
                "repeats": repeats, "rows": []}
     timed = []  # per shape: what the table needs once every round (and every peak) is measured
     for name, d_s, d_a, H in shapes:
@@ -721,8 +728,11 @@ def main():
                     alone[key]()
             scored = [k for k in alone if isinstance(planners[k][0], ICEMPlanner)]
             times = {k: [] for k in [*planners, *(f"{k}:network" for k in alone), *(f"{k}:scoring" for k in scored)]}
+            order, shuffler = list(planners), random.Random(0)
             for _ in range(repeats):  # interleaved: one action of each contender per round
-                for key, (planner, *_) in planners.items():
+                shuffler.shuffle(order)  # a new order each round: no contender always follows the same one
+                for key in order:
+                    planner = planners[key][0]
                     configure(key)
                     if hasattr(planner, "reset"):
                         planner.reset()
