@@ -6,9 +6,11 @@
 SoPrA's shape ((32, 6), H=5), three of ``planning_speed.py``'s contenders as it runs them: our fp32
 one-particle plan followed by its network calls replayed alone (``--network-alone``), then two
 identical one-particle bf16 plans (SoftAE's setting: ``icem-bf16-dedup`` and the same planner again,
-``B``), in the order fp32, A, B and then fp32, B, A, each order twice, ``--rounds`` rounds each.
-If the plan right after the fp32 replay is slower whichever of A and B it is, a fixed order biases
-the contender that always comes there. Prints the medians per order; nothing is written.
+``B``), in the order fp32, A, B and then fp32, B, A, each order twice, ``--rounds`` rounds each;
+then the same with an untimed action of each planner right before its timed one, as
+``planning_speed.py`` runs them. If the plan right after the fp32 replay is slower whichever of A
+and B it is, the place, not the planner, costs the time. Prints the medians per order; nothing is
+written.
 """
 from __future__ import annotations
 
@@ -52,18 +54,23 @@ def main() -> int:
         with RecordNetworkCalls(model) as rec:
             planners["fp32"](obs.clone())
         replay = NetworkCallsAlone(rec, "fp32")
-        for order in (["fp32", "A", "B"], ["fp32", "B", "A"]) * 2:
-            times = {k: [] for k in order}
-            for _ in range(args.rounds):
-                for key in order:
-                    planners[key].reset()
-                    t = time.perf_counter()
-                    planners[key](obs.clone())
-                    times[key].append(time.perf_counter() - t)
-                    if key == "fp32":
-                        replay()
-            print(" -> ".join(order) + ": " + ", ".join(f"{k} {1e3 * statistics.median(v):.2f} ms"
-                                                        for k, v in times.items()), flush=True)
+        for own_action_first in (False, True):
+            for order in (["fp32", "A", "B"], ["fp32", "B", "A"]) * 2:
+                times = {k: [] for k in order}
+                for _ in range(args.rounds):
+                    for key in order:
+                        if own_action_first:  # as planning_speed.py does: an untimed action of its own
+                            planners[key].reset()
+                            planners[key](obs.clone())
+                        planners[key].reset()
+                        t = time.perf_counter()
+                        planners[key](obs.clone())
+                        times[key].append(time.perf_counter() - t)
+                        if key == "fp32":
+                            replay()
+                print(("each after an untimed action of its own: " if own_action_first else "")
+                      + " -> ".join(order) + ": "
+                      + ", ".join(f"{k} {1e3 * statistics.median(v):.2f} ms" for k, v in times.items()), flush=True)
     return 0
 
 

@@ -9,11 +9,15 @@ used. Every planner is called under ``torch.no_grad()`` as an MPC user would (To
 not disable autograd themselves: timed with autograd on they record a graph at every model call).
 The contenders are interleaved (one action of each in turn, ``--repeats`` rounds, at least 5) and
 reported as median and best, so a noisy machine cannot make one ratio out of one lucky call. Each
-round takes them in a new order (seeded): in a fixed order a contender always follows the same
-one, and the plan right after a replay of fp32 network calls (``--network-alone``) ran about 10 %
-slower whichever contender it was (two identical SoftAE one-particle bf16 planners: 21.3-21.5 ms
-right after it, 19.0-19.4 ms one place later, 15 rounds per order, AMX Xeon:
-``python benchmarks/order_effect.py``, ``benchmarks/results/order_effect-amx.txt``).
+round takes them in a new order (seeded), and each timed action comes right after an untimed one
+of the same contender, as consecutive actions of an MPC loop do: a plan right after another
+contender's fp32 network work ran 8-10 % slower whichever planner it was (two identical SoftAE
+one-particle bf16 planners, AMX Xeon: 23.1-24.5 ms right after an fp32 replay, 21.0-22.6 ms one
+place later; each after an untimed action of its own, 20.7-20.9 ms in either place: ``python
+benchmarks/order_effect.py``, ``benchmarks/results/order_effect-amx.txt``). So in a fixed order
+without it, SoftAE's plan, which followed the fp32 one-particle contender's replay, was measured
+slow; in a shuffled order without it every contender was, by as much as its predecessors were
+heavy.
 
   cem-torchrl       TorchRL CEMPlanner over EnsembleModelEnv("sample") + UncertaintyReward, 2000 candidates
   mbrl-icem         mbrl-lib's ICEMOptimizer + GaussianMLP (TS-inf), 200 x 10 particles   [when mbrl imports];
@@ -734,7 +738,13 @@ def main():
                 for key in order:
                     planner = planners[key][0]
                     configure(key)
-                    if hasattr(planner, "reset"):
+                    # one untimed action first: the timed one follows the same planner's own action, as
+                    # in an MPC loop, not another contender's work (see the module's docstring)
+                    resets = hasattr(planner, "reset")
+                    if resets:
+                        planner.reset()
+                    planner(obs.clone())
+                    if resets:
                         planner.reset()
                     with TimeScoring(planner) if key in scored else contextlib.nullcontext() as scoring:
                         t = time.perf_counter()
