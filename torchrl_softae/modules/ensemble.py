@@ -3,8 +3,8 @@
 All L members live in stacked weight tensors of shape ``(L, in, out)`` and run in one
 ``torch.baddbmm`` per layer (training), or at inference by the measured fastest path (one grouped
 convolution or batched matmul per layer, or the whole network in one call of our own kernels: bf16
-in AMX tiles, :mod:`.amx_network`, fp32 in FMA register blocks, :mod:`.fma_network`): there is no
-Python loop over members anywhere on the forward path.
+in AMX tiles, :mod:`.amx_network`; fp32, or bf16 on AVX512-BF16, in register blocks,
+:mod:`.fma_network`): there is no Python loop over members anywhere on the forward path.
 
 Each member ``l`` predicts the normalized state *delta* ``(s' - s - m) / v`` from the normalized
 input ``(s, a)`` together with a bounded log-variance (PETS soft bounds). In original units

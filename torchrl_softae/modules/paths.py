@@ -34,8 +34,8 @@ __all__ = ["choose", "choices", "cache_path", "cpu_key", "INFERENCE_PATHS"]
 #: instead of two), batched matmuls; and the two unfused ones with the SiLU by the compiled kernel
 #: (torchrl_softae/csrc/silu.c; candidates only where it was built and the activation is SiLU);
 #: and the whole network in one kernel call: bf16 in AMX tiles (with SiLU on a CPU with AMX,
-#: csrc/amx_network.c) or fp32 in FMA register blocks (with SiLU on AVX-512F or AVX2+FMA,
-#: csrc/fma_network.c)
+#: csrc/amx_network.c) or in register blocks, fp32 on AVX-512F or AVX2+FMA and bf16 on AVX512-BF16
+#: (with SiLU, csrc/fma_network.c)
 INFERENCE_PATHS = ("conv", "conv-fused", "bmm", "conv-silu-kernel", "bmm-silu-kernel", "amx-network", "fma-network")
 _LOCK = threading.RLock()  # re-entrant: a measured candidate may itself make a measured choice
 _MEMORY: dict[str, str] = {}
