@@ -106,8 +106,6 @@ AMX static void block(const uint16_t *a, int64_t kp, const uint16_t *w0, const u
     _tile_stored(1, c + 16, 128);
 }
 
-static inline __mmask16 first(int64_t k) { return k <= 0 ? 0 : k >= 16 ? 0xffff : (__mmask16)((1u << k) - 1u); }
-
 /* a hidden layer's epilogue: dst[r][0:32] = bf16(silu(c[r] + bias)) for r < rows */
 AVX512 static void epilogue_silu(const float *c, const float *bias, uint16_t *dst, int64_t dst_stride, int rows) {
     const __m512 b0 = _mm512_loadu_ps(bias), b1 = _mm512_loadu_ps(bias + 16);
@@ -120,7 +118,7 @@ AVX512 static void epilogue_silu(const float *c, const float *bias, uint16_t *ds
 
 /* the last layer's epilogue: out[r][col0 + j] = c[r][j] + bias[j] for r < rows, col0 + j < cols */
 AVX512 static void epilogue_out(const float *c, const float *bias, float *out, int64_t cols, int64_t col0, int rows) {
-    const __mmask16 m0 = first(cols - col0), m1 = first(cols - col0 - 16);
+    const __mmask16 m0 = first16(cols - col0), m1 = first16(cols - col0 - 16);
     const __m512 b0 = _mm512_loadu_ps(bias), b1 = _mm512_loadu_ps(bias + 16);
     for (int r = 0; r < rows; r++) {
         _mm512_mask_storeu_ps(out + r * cols + col0, m0, _mm512_add_ps(_mm512_loadu_ps(c + 32 * r), b0));
@@ -130,19 +128,8 @@ AVX512 static void epilogue_out(const float *c, const float *bias, float *out, i
 
 /* a (UNIT_ROWS x kp bf16) = x's rows [row0, row0 + rows), zero-padded in columns and rows */
 AVX512 static void load_input(const float *x, int64_t d_in, int64_t row0, int rows, uint16_t *a, int64_t kp) {
-    for (int r = 0; r < UNIT_ROWS; r++) {
-        uint16_t *dst = a + r * kp;
-        if (r >= rows) {
-            memset(dst, 0, (size_t)kp * 2);
-            continue;
-        }
-        const float *src = x + (row0 + r) * d_in;
-        for (int64_t k = 0; k < kp; k += 32) {
-            __m512 v0 = _mm512_maskz_loadu_ps(first(d_in - k), src + k);
-            __m512 v1 = _mm512_maskz_loadu_ps(first(d_in - k - 16), src + k + 16);
-            _mm512_storeu_si512(dst + k, (__m512i)_mm512_cvtne2ps_pbh(v1, v0));
-        }
-    }
+    rows_to_bf16(x + row0 * d_in, d_in, rows, a, kp, kp);
+    memset(a + rows * kp, 0, (size_t)((UNIT_ROWS - rows) * kp) * 2);
 }
 
 /* one member's block of rows through every layer; a, b: two UNIT_ROWS x (widest layer) buffers */
@@ -198,11 +185,7 @@ AMX static int run_units(const void *context, int64_t first_unit, int64_t last_u
 
 /* 0 on success, -1 where a thread could not allocate its scratch (the output is then incomplete) */
 static int forward(const network *net, int threads) {
-    units_job job = {net, (net->n + UNIT_ROWS - 1) / UNIT_ROWS, 0};
-    for (int i = 0; i < net->layers; i++) {
-        if (net->in[i] > job.width) job.width = net->in[i];
-        if (net->padded_out[i] > job.width) job.width = net->padded_out[i];
-    }
+    units_job job = {net, (net->n + UNIT_ROWS - 1) / UNIT_ROWS, widest_layer(net)};
     return run_parallel(net->members * job.blocks, threads, run_units, &job);
 }
 

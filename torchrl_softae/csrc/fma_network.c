@@ -90,8 +90,6 @@ typedef struct {
         }                                                                                                \
     }
 
-AVX512 static inline __mmask16 first16(int64_t k) { return k <= 0 ? 0 : k >= 16 ? 0xffff : (__mmask16)((1u << k) - 1u); }
-
 /* the last layer's epilogue: out[r][col0 + j] = c[r][j] + bias[j], for the output's columns only */
 AVX512 static INLINE void store_output_512(__m512 c[][2], const int rows, __m512 b0, __m512 b1, const epilogue *e) {
     float *out = e->dst;
@@ -219,16 +217,6 @@ AVX512BF16 static INLINE void panel_bf16(const int rows, const uint16_t *a, int6
 
 BLOCK_FUNCTION(AVX512BF16, block_bf16, panel_bf16, uint16_t)
 
-/* a (rows x kp bf16, row stride lda) = x's rows, rounded to bf16 (nearest even), zeros after d_in */
-AVX512BF16 static void load_input_bf16(const float *x, int64_t d_in, int rows, uint16_t *a, int64_t lda, int64_t kp) {
-    for (int r = 0; r < rows; r++)
-        for (int64_t k = 0; k < kp; k += 32) {
-            const __m512 v0 = _mm512_maskz_loadu_ps(first16(d_in - k), x + r * d_in + k);
-            const __m512 v1 = _mm512_maskz_loadu_ps(first16(d_in - k - 16), x + r * d_in + k + 16);
-            const __mmask32 m = kp - k >= 32 ? 0xffffffffu : (__mmask32)((1u << (kp - k)) - 1u);
-            _mm512_mask_storeu_epi16(a + r * lda + k, m, (__m512i)_mm512_cvtne2ps_pbh(v1, v0));
-        }
-}
 #endif
 
 /* ------------------------------------------------------------------ dispatch */
@@ -283,7 +271,7 @@ static void run_unit(const network *net, const variant *v, int64_t member, int64
     int64_t lda = net->d_in;
     if (elem == 2) {
 #ifdef SOFTAE_X86
-        load_input_bf16(net->x + row0 * net->d_in, net->d_in, rows, (uint16_t *)a, width, net->in[0]);
+        rows_to_bf16(net->x + row0 * net->d_in, net->d_in, rows, (uint16_t *)a, width, net->in[0]);
 #endif
         in = a;
         lda = width;
@@ -336,13 +324,7 @@ static int run_units(const void *context, int64_t first_unit, int64_t last_unit)
 
 /* 0 on success, -1 where a thread could not allocate its scratch (the output is then incomplete) */
 static int run_network(const network *net, const variant *v, int threads) {
-    units_job job = {net, v, 0, 0};
-    for (int i = 0; i < net->layers; i++) {
-        if (net->in[i] > job.width) job.width = net->in[i];
-        if (net->padded_out[i] > job.width) job.width = net->padded_out[i];
-    }
-    job.width = (job.width + 31) / 32 * 32; /* the bf16 input load writes whole blocks of 32 */
-    job.blocks = (net->n + v->rows - 1) / v->rows;
+    units_job job = {net, v, (net->n + v->rows - 1) / v->rows, widest_layer(net)};
     return run_parallel(net->members * job.blocks, threads, run_units, &job);
 }
 

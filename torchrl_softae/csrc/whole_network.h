@@ -124,6 +124,37 @@ static inline int run_parallel(int64_t units, int threads, int (*run)(const void
     return failed ? -1 : 0;
 }
 
+/* the widest layer's features (inputs as packed or padded outputs): a work unit's activation
+ * buffers hold rows of this many values */
+static inline int64_t widest_layer(const network *net) {
+    int64_t width = 0;
+    for (int i = 0; i < net->layers; i++) {
+        if (net->in[i] > width) width = net->in[i];
+        if (net->padded_out[i] > width) width = net->padded_out[i];
+    }
+    return width;
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
+
+/* lanes [0, k) of 16 */
+static inline __mmask16 first16(int64_t k) { return k <= 0 ? 0 : k >= 16 ? 0xffff : (__mmask16)((1u << k) - 1u); }
+
+/* dst (rows x kp bf16, row stride `stride`) = x's rows (rows x d_in fp32, d_in <= kp) rounded to
+ * bf16 (nearest even), zeros in columns [d_in, kp): the bf16 kernels' first-layer input */
+__attribute__((target("avx512f,avx512bw,avx512vl,avx512bf16"))) static inline void rows_to_bf16(
+    const float *x, int64_t d_in, int rows, uint16_t *dst, int64_t stride, int64_t kp) {
+    for (int r = 0; r < rows; r++)
+        for (int64_t k = 0; k < kp; k += 32) {
+            const __m512 v0 = _mm512_maskz_loadu_ps(first16(d_in - k), x + r * d_in + k);
+            const __m512 v1 = _mm512_maskz_loadu_ps(first16(d_in - k - 16), x + r * d_in + k + 16);
+            const __mmask32 m = kp - k >= 32 ? 0xffffffffu : (__mmask32)((1u << (kp - k)) - 1u);
+            _mm512_mask_storeu_epi16(dst + r * stride + k, m, (__m512i)_mm512_cvtne2ps_pbh(v1, v0));
+        }
+}
+#endif
+
 /* forward(net, threads) without the GIL: None, or MemoryError where a thread could not allocate
  * its scratch (never a silently incomplete output) */
 static inline PyObject *call_forward(const network *net, int threads, int (*forward)(const network *, int)) {
