@@ -220,6 +220,15 @@ def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_pat
         relu.network(x)
 
 
+def _assert_forced_path_matches_bmm(model, path, x, tol):
+    """The model forced onto ``path`` (in its planning dtype) predicts the batched-matmul path's means
+    within ``tol``; leaves the model on ``bmm``."""
+    model.inference_path = path
+    mu = model.network(x)[0]
+    model.inference_path = "bmm"
+    torch.testing.assert_close(mu, model.network(x)[0], rtol=tol, atol=tol)
+
+
 def _torch_bf16_layers(model, x):
     """The network as torch's bf16 paths compute it: bf16 matmul inputs, fp32 accumulation, bias and
     SiLU, hidden activations rounded to bf16, the last layer in fp32."""
@@ -282,12 +291,9 @@ def test_amx_network_computes_the_bf16_network_on_every_row_count():
                 torch.testing.assert_close(means, out[..., :7], rtol=0, atol=0)
     finally:
         torch.set_num_threads(threads)
-    model.inference_path = "amx-network"
     x = torch.randn(40, 10)
     with torch.no_grad():
-        mu_amx = model.network(x)[0]
-        model.inference_path = "bmm"
-        torch.testing.assert_close(mu_amx, model.network(x)[0], rtol=0.05, atol=0.05)
+        _assert_forced_path_matches_bmm(model, "amx-network", x, tol=0.05)
         model.inference_path, model.planning_dtype = "amx-network", None
         with pytest.raises(RuntimeError, match="'amx-network' runs bf16 with nn.SiLU on an AMX CPU: got torch.float32"):
             model.network(x)
@@ -362,12 +368,9 @@ def test_fma_network_computes_the_fp32_network_on_every_row_count_and_instructio
     finally:
         torch.set_num_threads(threads)
         fma_network.use_isa(isa)
-    model.inference_path = "fma-network"
     x = torch.randn(40, 10)
     with torch.no_grad():
-        mu = model.network(x)[0]
-        model.inference_path = "bmm"
-        torch.testing.assert_close(mu, model.network(x)[0], rtol=1e-5, atol=1e-5)
+        _assert_forced_path_matches_bmm(model, "fma-network", x, tol=1e-5)
         model.inference_path, model.planning_dtype = "fma-network", torch.float16
         with pytest.raises(RuntimeError, match="'fma-network' runs fp32 .* or bf16 .* got torch.float16"):
             model.network(x)
@@ -410,12 +413,9 @@ def test_fma_network_computes_the_bf16_network_on_every_row_count():
                                                rtol=0.02, atol=0.02)
     finally:
         torch.set_num_threads(threads)
-    model.inference_path = "fma-network"
     x = torch.randn(40, 9)
     with torch.no_grad():
-        mu = model.network(x)[0]
-        model.inference_path = "bmm"
-        torch.testing.assert_close(mu, model.network(x)[0], rtol=0.05, atol=0.05)
+        _assert_forced_path_matches_bmm(model, "fma-network", x, tol=0.05)
         _assert_a_copy_runs_its_own_weights(fma_network, model._packed_network("fma-network", torch.bfloat16, None), x,
                                             6)
 
