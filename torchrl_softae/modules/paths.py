@@ -1,6 +1,6 @@
 """Measured choices of how to run the ensemble at inference: which kernels (grouped 1x1
-convolutions through oneDNN, batched matmuls through MKL/cuBLAS, or on a CPU with AMX the whole
-network in one kernel) and whether bf16 pays.
+convolutions through oneDNN, batched matmuls through MKL/cuBLAS, or the whole network in one call
+of our own kernels: AMX tiles, or FMA register blocks) and whether bf16 pays.
 
 Which is faster depends on the CPU, not on its vendor (AMD EPYC without AMX: oneDNN's fp32 GEMM
 beats MKL's AVX2 path; Intel with AMX: MKL's fp32 GEMM beats oneDNN's), so each choice is timed
