@@ -511,25 +511,34 @@ def flops_per_action(model, rows, H, iters, first_rows=None, with_logvar=True):
 
 
 class RecordNetworkCalls:
-    """Records the input shape and ``with_logvar`` of every ``model.network_output`` call inside the
-    block (every prediction goes through it; the instance's method is wrapped for the block's
-    duration, then the class's is back)."""
+    """Records the input shape and ``with_logvar`` of every network call inside the block: every
+    ``model.network_output`` call, and a deterministic rollout's steps where they run as prepared
+    kernel calls, without it (``EnsembleWorldModel.deterministic_rollout``: one call of ``(M, d_s
+    + d_a)`` rows per step, mean head only). The instance's methods are wrapped for the block's
+    duration, then the class's are back."""
 
     def __init__(self, model):
         self.model, self.calls = model, []
 
     def __enter__(self):
-        network_output = self.model.network_output
+        network_output, rollout = self.model.network_output, self.model.deterministic_rollout
 
         def recorded(x, with_logvar=True):
             self.calls.append((tuple(x.shape), with_logvar))
             return network_output(x, with_logvar)
 
-        self.model.network_output = recorded
+        def recorded_rollout(observation, normalized_actions, eta=None):
+            steps = rollout(observation, normalized_actions, eta)
+            if steps._layout.compiled is not None:  # else its steps call network_output
+                H, M, d_a = normalized_actions.shape
+                self.calls += [((M, observation.shape[-1] + d_a), False)] * H
+            return steps
+
+        self.model.network_output, self.model.deterministic_rollout = recorded, recorded_rollout
         return self
 
     def __exit__(self, *exc):
-        del self.model.network_output
+        del self.model.network_output, self.model.deterministic_rollout
 
     def flops(self) -> int:
         """The ensemble FLOPs of the recorded calls (rows x every member's matmuls, the

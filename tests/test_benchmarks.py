@@ -101,3 +101,29 @@ def test_heldout_extrapolation_splits_the_runs_own_metric(tmp_path):
     # two episodes (29 changes each) measure that within a few standard errors (0.17 each)
     assert abs(r["action_change_uniform"] - 4 / 3) < 1e-6
     assert all(0.8 < v < 1.9 for v in r["action_change_per_episode"]), r["action_change_per_episode"]
+
+
+def test_network_calls_are_recorded_on_every_inference_path():
+    """``--network-alone`` replays what ``RecordNetworkCalls`` saw: a deterministic plan's network
+    calls are the same record whether they run through ``network_output`` (a torch path) or as a
+    rollout's prepared kernel calls (a whole-network kernel, which bypasses it)."""
+    import torch
+    from tensordict import TensorDict
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import planning_speed
+
+    model = planning_speed.make_model(5, 2)
+    env = planning_speed.softae_env(model)
+    state = TensorDict({"observation": torch.randn(1, 5)}, [1])
+    actions = torch.rand(1, 6, 3, 7) * 2 - 1  # 6 candidates, H = 3, d_a + d_s = 7
+    records = {}
+    for path in ("bmm", "fma-network"):
+        if path in model.available_inference_paths(torch.float32):
+            model.inference_path = path
+            with planning_speed.RecordNetworkCalls(model) as record:
+                env.base_env.evaluate_action_sequences(state, actions, num_particles=1, env=env)
+            records[path] = record.calls
+    model.inference_path = "auto"
+    assert records["bmm"] == [((6, 7), False)] * 3
+    assert all(calls == records["bmm"] for calls in records.values()), records

@@ -1,4 +1,5 @@
 import copy
+import pickle
 import warnings
 
 import pytest
@@ -609,6 +610,79 @@ def _fused_moments_match_the_torch_ops(monkeypatch):
     torch.testing.assert_close(ale, want.float(), rtol=2e-6, atol=0)
     with pytest.raises(ValueError, match="logvar_bounds span 90, expected < 80"):
         kernel(raw, torch.zeros(8, 3), torch.zeros(3), scale, 3, member, True, (lo, lo + 90))
+
+
+@pytest.mark.skipif(not moments_kernel.available(), reason="the moments kernel was not built or this CPU lacks AVX2")
+def test_deterministic_rollout_matches_the_torch_ops():
+    """A deterministic rollout (Mean-AE, and SoftAE's mu + sigma * eta) as prepared kernel calls,
+    on each whole-network kernel that runs here in each dtype, gives step by step the same bits as
+    predict_moments and addcmul on the same inference path (the next state normalized into the
+    next input by the moments kernel, as the torch ops do it); a torch path runs the torch ops. A
+    second rollout of the same shape reuses the buffers and calls with its own values; a parameter
+    change rebuilds them."""
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(1)
+    model = EnsembleWorldModel(21, 4, num_cells=64, depth=2)  # 21: a masked tail in the moments
+    obs = torch.randn(700, 21, generator=g) * 3
+    model.fit_normalizers(obs, torch.rand(700, 4, generator=g), obs + torch.randn(700, 21, generator=g))
+    model.eval()
+    whole = ("amx-network", "fma-network")
+    cases = [(dtype, path) for dtype in (None, torch.bfloat16) for path in (*whole, "bmm")
+             if path in model.available_inference_paths(dtype or torch.float32)]
+    assert ("fma-network" in model.available_inference_paths(torch.float32)) == fma_network.available(torch.float32)
+    H, M = 4, 37
+
+    def reference(s, acts, eta, model=model):
+        out = []
+        for h in range(H):
+            mu, sigma, _, _ = model.predict_moments(s, acts[h])
+            s = mu if eta is None else torch.addcmul(mu, sigma, eta[h])
+            out.append((s, sigma))
+        return out
+
+    def rollout(s, acts, eta, model=model):
+        r = model.deterministic_rollout(s, model.normalized_actions(acts), eta)
+        return r, [(nxt.clone(), sigma.clone()) for nxt, sigma in r]
+
+    with torch.no_grad():
+        for dtype, path in cases:
+            model.planning_dtype, model.inference_path = dtype, path
+            for with_eta in (False, True):
+                layouts = []
+                for attempt in range(2):
+                    s0 = torch.randn(M, 21, generator=g) * 2
+                    acts = torch.rand(H, M, 4, generator=g) * 2 - 1
+                    eta = 2 * torch.rand(H, M, 21, generator=g) - 1 if with_eta else None
+                    r, got = rollout(s0, acts, eta)
+                    assert len(r) == H and (r._layout.compiled is not None) == (path in whole)
+                    layouts.append(r._layout)
+                    for (s, sigma), (s_ref, sigma_ref) in zip(got, reference(s0, acts, eta)):
+                        assert torch.equal(s, s_ref) and torch.equal(sigma, sigma_ref), (dtype, path, with_eta)
+                assert layouts[0] is layouts[1]  # the same shape: buffers and prepared calls reused
+        model.planning_dtype, model.inference_path = None, whole[1] if fma_network.available() else "bmm"
+        s0, acts = torch.randn(M, 21, generator=g), torch.rand(H, M, 4, generator=g) * 2 - 1
+        before, _ = rollout(s0, acts, None)
+        model.layers[0].weight.mul_(1.5)  # its version counter moves: new packed weights, new calls
+        after, got = rollout(s0, acts, None)
+        assert after._layout is not before._layout
+        for (s, sigma), (s_ref, sigma_ref) in zip(got, reference(s0, acts, None)):
+            assert torch.equal(s, s_ref) and torch.equal(sigma, sigma_ref)
+        # a copy (deepcopy, pickle) prepares its own calls on its own buffers and weights
+        for copy_of in (copy.deepcopy, lambda m: pickle.loads(pickle.dumps(m))):
+            twin = copy_of(model)
+            for change in (False, True):
+                if change:
+                    twin.layers[0].weight.mul_(0.5)
+                s1, acts1 = torch.randn(M, 21, generator=g), torch.rand(H, M, 4, generator=g) * 2 - 1
+                _, theirs = rollout(s1, acts1, None, twin)
+                _, mine = rollout(s0, acts, None)
+                for got, m, s_, a_ in ((theirs, twin, s1, acts1), (mine, model, s0, acts)):
+                    for (s, sigma), (s_ref, sigma_ref) in zip(got, reference(s_, a_, None, m)):
+                        assert torch.equal(s, s_ref) and torch.equal(sigma, sigma_ref)
+        with pytest.raises(ValueError, match=r"eta has shape \(4, 37, 20\), expected \(4, 37, 21\)"):
+            model.deterministic_rollout(s0, model.normalized_actions(acts), torch.zeros(H, M, 20))
+        with pytest.raises(ValueError, match=r"observation has shape \(36, 21\), expected \(37, 21\)"):
+            model.deterministic_rollout(s0[1:], model.normalized_actions(acts))
 
 
 @pytest.mark.skipif(not (silu_kernel.available() and moments_kernel.available()),

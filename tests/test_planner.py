@@ -9,7 +9,7 @@ from torchrl.modules import CEMPlanner
 from _envs import PointMassEnv
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules.planners import rollout_returns
-from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner, MPPIPlanner, colored_noise
+from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner, MPPIPlanner, colored_noise, resolve_planning_dtype
 from torchrl_softae.modules.paths import INFERENCE_PATHS
 
 
@@ -313,12 +313,26 @@ def test_tensor_loop_matches_the_torchrl_stack():
         rows, network = [], base.world_model.network_output
         base.world_model.network_output = lambda x, *a, **k: (rows.append(x.shape[0]), network(x, *a, **k))[1]
         base.set_seed(0)
-        fast = base._returns_on_tensors(base._tensor_stack(tenv), obs, acts, member)
+        fast = base._returns_on_tensors(base._tensor_stack(tenv), obs, acts[:, :, 0], member)
         assert rows == [10] + [10 * particles] * 3  # 2 x 5 candidates
         base.set_seed(0)
         slow = base._returns_through_step(tenv, obs, acts, member)
         del base.world_model.network_output
         torch.testing.assert_close(fast, slow)
+        # the deterministic rollout as prepared kernel calls on a whole-network path (the network
+        # is then called without network_output): the same returns as stepping
+        if base.deterministic and particles == 1:
+            for path in ("amx-network", "fma-network"):
+                for precision in ("fp32", "bf16"):
+                    if path not in base.world_model.available_inference_paths(resolve_planning_dtype(precision) or torch.float32):
+                        continue
+                    base.world_model.inference_path = path
+                    with base._planning(precision), torch.no_grad():
+                        fast = base._returns_on_tensors(base._tensor_stack(tenv), obs, acts[:, :, 0], member)
+                        assert base.world_model._rollout_layout(4, 10, base.mode == "optimistic", "cpu").compiled
+                        slow = base._returns_through_step(tenv, obs, acts, member)
+                    base.world_model.inference_path = "auto"
+                    torch.testing.assert_close(fast, slow)
     scaled = TransformedEnv(_model_env("mean"), Compose(UncertaintyReward(), RewardScaling(0.0, 2.0)))
     assert scaled.base_env._tensor_stack(scaled) is None
     obs_td = TensorDict({"observation": torch.randn(2, 3)}, [2])

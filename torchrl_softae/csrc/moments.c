@@ -13,6 +13,14 @@
  * (the same function: exp(softplus(z)) = 1 + exp(z) twice), one exp per value instead of the
  * nine passes of the torch ops; exp(hi - x) overflowing to inf gives the limit v = lo exactly.
  *
+ * A deterministic planning step can finish in the same pass: given the hallucinated control eta
+ * (beta already applied), the mean output is SoftAE's optimistic next state
+ *     s'    = mu + sigma * eta                               (else s' = mu)
+ * and, given the next step's network input, its state columns receive s' as the network takes it,
+ * (s' - in_loc) / in_scale. Right after a network call every torch op touches cache-cold code and
+ * data (on the AMX Xeon a 4-element add took 30 us there against 2 us in a loop); these are the
+ * three ops and the concatenation a step would otherwise run between two network calls.
+ *
  * Why: done with torch ops this is about ten passes over (L, N, d_s) tensors (the bf16-to-fp32
  * copy, the member means, mean, centring, square, sum, the member gather), each a kernel launch;
  * at the 2060 rows of a 10-particle plan the (L, N, d_s) tensors leave the L2 cache. Here each
@@ -53,6 +61,10 @@ typedef struct {
     /* (d,) each, or NULL: picked_logvar receives the aleatoric std, std_scale = scale * exp(lo / 2),
      * span = exp(hi - lo) */
     const float *hi, *std_scale, *span;
+    const float *eta;           /* (N, d) contiguous, or NULL: mu receives mu + sigma * eta */
+    float *next_input;          /* row n's state columns at next_input + n * next_stride, or NULL */
+    int64_t next_stride;
+    const float *in_loc, *in_scale; /* (d,) the input normalizer's state columns (with next_input) */
 } moments_args;
 
 /* members kept in registers (one __m512 each); the Python side reads it as MAX_MEMBERS */
@@ -88,8 +100,15 @@ __attribute__((target("avx512f,avx512bw,avx512vl"))) static void moments_row_avx
             const __m512 c = _mm512_sub_ps(m[l], mean);
             ss = _mm512_add_ps(ss, _mm512_mul_ps(c, c));
         }
-        _mm512_mask_storeu_ps(a->mu + n * d + j, k, mean);
-        _mm512_mask_storeu_ps(a->sigma + n * d + j, k, _mm512_sqrt_ps(_mm512_mul_ps(ss, inv_dof)));
+        const __m512 sd = _mm512_sqrt_ps(_mm512_mul_ps(ss, inv_dof));
+        __m512 next = mean;
+        if (a->eta != NULL) next = _mm512_add_ps(mean, _mm512_mul_ps(sd, _mm512_maskz_loadu_ps(k, a->eta + n * d + j)));
+        _mm512_mask_storeu_ps(a->mu + n * d + j, k, next);
+        _mm512_mask_storeu_ps(a->sigma + n * d + j, k, sd);
+        if (a->next_input != NULL)
+            _mm512_mask_storeu_ps(a->next_input + n * a->next_stride + j, k,
+                                  _mm512_div_ps(_mm512_sub_ps(next, _mm512_maskz_loadu_ps(k, a->in_loc + j)),
+                                                _mm512_maskz_loadu_ps(k, a->in_scale + j)));
         if (a->member != NULL) {
             const int64_t l = a->member[n];
             _mm512_mask_storeu_ps(a->picked + n * d + j, k, m[l]);
@@ -160,8 +179,17 @@ __attribute__((target("avx2"))) static void moments_row_avx2(const moments_args 
             const __m256 c = _mm256_sub_ps(m[l], mean);
             ss = _mm256_add_ps(ss, _mm256_mul_ps(c, c));
         }
-        _mm256_maskstore_ps(a->mu + n * d + j, k, mean);
-        _mm256_maskstore_ps(a->sigma + n * d + j, k, _mm256_sqrt_ps(_mm256_mul_ps(ss, inv_dof)));
+        const __m256 sd = _mm256_sqrt_ps(_mm256_mul_ps(ss, inv_dof));
+        __m256 next = mean;
+        if (a->eta != NULL) next = _mm256_add_ps(mean, _mm256_mul_ps(sd, _mm256_maskload_ps(a->eta + n * d + j, k)));
+        _mm256_maskstore_ps(a->mu + n * d + j, k, next);
+        _mm256_maskstore_ps(a->sigma + n * d + j, k, sd);
+        if (a->next_input != NULL) {
+            /* masked lanes of in_scale load as 0: 0 / 0 there is never stored */
+            const __m256 v = _mm256_div_ps(_mm256_sub_ps(next, _mm256_maskload_ps(a->in_loc + j, k)),
+                                           _mm256_maskload_ps(a->in_scale + j, k));
+            _mm256_maskstore_ps(a->next_input + n * a->next_stride + j, k, v);
+        }
         if (a->member != NULL) {
             const int64_t l = a->member[n];
             _mm256_maskstore_ps(a->picked + n * d + j, k, m[l]);
@@ -209,12 +237,14 @@ static void detect(void) { /* the best variant this CPU runs, in the order of VA
 #define MIN_PARALLEL_ELEMENTS ((int64_t)32768)
 
 static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
-    unsigned long long y, state, loc, scale, member, mu, sigma, picked, picked_logvar, hi, std_scale, span;
-    long long sm, sn, L, N, d, logvar_offset;
+    unsigned long long y, state, loc, scale, member, mu, sigma, picked, picked_logvar, hi, std_scale, span, eta,
+        next_input, in_loc, in_scale;
+    long long sm, sn, L, N, d, logvar_offset, next_stride;
     int dtype, threads;
     (void)self;
-    if (!PyArg_ParseTuple(args, "KLLiLLLLKKKKKKKKKKKi", &y, &sm, &sn, &dtype, &L, &N, &d, &logvar_offset, &state, &loc,
-                          &scale, &member, &mu, &sigma, &picked, &picked_logvar, &hi, &std_scale, &span, &threads))
+    if (!PyArg_ParseTuple(args, "KLLiLLLLKKKKKKKKKKKKKLKKi", &y, &sm, &sn, &dtype, &L, &N, &d, &logvar_offset, &state,
+                          &loc, &scale, &member, &mu, &sigma, &picked, &picked_logvar, &hi, &std_scale, &span, &eta,
+                          &next_input, &next_stride, &in_loc, &in_scale, &threads))
         return NULL;
     if (dtype != DTYPE_FLOAT32 && dtype != DTYPE_BFLOAT16) {
         PyErr_Format(PyExc_ValueError, "ensemble_moments: dtype code %d, expected 0 (float32) or 1 (bfloat16)", dtype);
@@ -225,7 +255,8 @@ static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
         return NULL;
     }
     if (L < 1 || L > MAX_VECTOR_MEMBERS || N < 0 || d < 1 || !y || !state || !loc || !scale || !mu || !sigma || (member && !picked)
-        || (member && logvar_offset >= 0 && !picked_logvar) || ((hi || std_scale || span) && !(hi && std_scale && span))) {
+        || (member && logvar_offset >= 0 && !picked_logvar) || ((hi || std_scale || span) && !(hi && std_scale && span))
+        || (next_input && (!in_loc || !in_scale || next_stride < d))) {
         PyErr_Format(PyExc_ValueError, "ensemble_moments: L=%lld (expected 1..%d), N=%lld, d=%lld, or a null address",
                      L, MAX_VECTOR_MEMBERS, N, d);
         return NULL;
@@ -234,7 +265,9 @@ static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
                       (const float *)(uintptr_t)state, (const float *)(uintptr_t)loc, (const float *)(uintptr_t)scale,
                       (const int64_t *)(uintptr_t)member, (float *)(uintptr_t)mu, (float *)(uintptr_t)sigma,
                       (float *)(uintptr_t)picked, (float *)(uintptr_t)picked_logvar, (const float *)(uintptr_t)hi,
-                      (const float *)(uintptr_t)std_scale, (const float *)(uintptr_t)span};
+                      (const float *)(uintptr_t)std_scale, (const float *)(uintptr_t)span, (const float *)(uintptr_t)eta,
+                      (float *)(uintptr_t)next_input, next_stride, (const float *)(uintptr_t)in_loc,
+                      (const float *)(uintptr_t)in_scale};
     if (threads < 1) threads = 1;
     const int parallel = threads > 1 && N * L * d >= MIN_PARALLEL_ELEMENTS;
     const row_fn row = VARIANTS[CURRENT].row;
@@ -258,9 +291,10 @@ static PyMethodDef METHODS[] = {
     SOFTAE_ISA_METHODS,
     {"ensemble_moments", ensemble_moments, METH_VARARGS,
      "ensemble_moments(y, member_stride, row_stride, dtype, L, N, d, logvar_offset, state, loc, scale, member, "
-     "mu, sigma, picked, picked_logvar, hi, std_scale, span, threads): mu and sigma (and a picked member's mean "
-     "and raw log-variance, or with hi, std_scale and span its aleatoric std) of an ensemble's raw output; "
-     "addresses of contiguous float32 buffers, 0 for none"},
+     "mu, sigma, picked, picked_logvar, hi, std_scale, span, eta, next_input, next_stride, in_loc, in_scale, "
+     "threads): mu (or mu + sigma * eta) and sigma (and a picked member's mean and raw log-variance, or with hi, "
+     "std_scale and span its aleatoric std) of an ensemble's raw output, and the mean normalized into the next "
+     "input's rows; addresses of contiguous float32 buffers, 0 for none"},
     {NULL, NULL, 0, NULL},
 };
 

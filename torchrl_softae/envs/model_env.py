@@ -170,17 +170,20 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         particles, d_s)``: the ensemble runs once for them all; what differs between the particles
         (their member, their noise) is applied after. The same values as ``particles`` copies of
         the inputs, at ``1 / particles`` of the network's cost."""
-        return self._propagate(observation, action, eta, member_index, particles)
+        return self._propagate(observation, self.world_model.normalized_actions(action), eta, member_index, particles)
 
-    def _moments(self, observation, action, member_index=None, particles=1):
+    def _moments(self, observation, model_action, member_index=None, particles=1):
         """``(mu, sigma, member_mean, aleatoric_std)``, each ``(*B, d_s)`` (see
-        :meth:`EnsembleWorldModel.predict_moments`); with ``particles`` > 1 the inputs are shared
-        by that many particles and the outputs ``(*B, particles, d_s)``."""
+        :meth:`EnsembleWorldModel.predict_moments`) at the normalized actions ``model_action``
+        (:meth:`EnsembleWorldModel.normalized_actions`); with ``particles`` > 1 the inputs are
+        shared by that many particles and the outputs ``(*B, particles, d_s)``."""
         model = self.world_model
         if particles == 1:
-            return model.predict_moments(observation, action, self.aleatoric_noise, member_index)
+            return model.predict_moments(observation, model_action, self.aleatoric_noise, member_index,
+                                         action_normalized=True)
         # shared rows: every member's mean, then each particle's member picked from them
-        members, ale = model.predict_members(observation, action, with_aleatoric=self.aleatoric_noise)
+        members, ale = model.predict_members(observation, model_action, with_aleatoric=self.aleatoric_noise,
+                                             action_normalized=True)
         mu = members.mean(0)
         sigma = ensemble_std(members, mu)
         shape = (*mu.shape[:-2], particles, mu.shape[-1])
@@ -205,11 +208,15 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         mu, sigma, _, ale = self._moments(observation, action, particles=particles)
         return self._with_noise(mu, ale), sigma
 
-    def _propagate_optimistic(self, observation, action, eta, member_index, particles=1):
+    @staticmethod
+    def _check_eta(eta, expected_shape) -> None:
         if eta is None:
             raise KeyError("mode='optimistic' needs the hallucinated control 'eta' in the tensordict")
-        if eta.shape != observation.shape:  # eta perturbs the state it comes with
-            raise ValueError(f"'eta' has shape {tuple(eta.shape)}, expected {tuple(observation.shape)}")
+        if eta.shape != expected_shape:  # eta perturbs the state it comes with
+            raise ValueError(f"'eta' has shape {tuple(eta.shape)}, expected {tuple(expected_shape)}")
+
+    def _propagate_optimistic(self, observation, action, eta, member_index, particles=1):
+        self._check_eta(eta, observation.shape)
         mu, sigma, _, ale = self._moments(observation, action, particles=particles)
         return self._with_noise(torch.addcmul(mu, sigma, eta), ale), sigma
 
@@ -314,12 +321,12 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             L = self.world_model.ensemble_size
             offset = torch.randint(L, (B, N, 1), generator=generator, device=action_sequences.device)
             member = (torch.arange(P, device=action_sequences.device) + offset) % L
-        acts = action_sequences.unsqueeze(2).expand(B, N, P, H, d)
         stack = self._tensor_stack(env)
         with self._planning(precision):
             if stack is not None:
-                ret = self._returns_on_tensors(stack, obs, acts, member)
+                ret = self._returns_on_tensors(stack, obs, action_sequences, member)
             else:
+                acts = action_sequences.unsqueeze(2).expand(B, N, P, H, d)
                 ret = self._returns_through_step(env, obs, acts, member)
         ret = ret.squeeze(-1).mean(-1)
         return torch.where(torch.isfinite(ret), ret, torch.full_like(ret, -math.inf))
@@ -333,28 +340,73 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         transforms = list(env.transform) if isinstance(env.transform, Compose) else [env.transform]
         return transforms if all(isinstance(t, PlanningTransform) for t in transforms) else None
 
-    def _returns_on_tensors(self, stack, obs, acts, member) -> torch.Tensor:
+    def _returns_on_tensors(self, stack, obs, action_sequences, member) -> torch.Tensor:
         """The horizon loop on plain tensors (no TensorDict, no spec work per step): the same
-        arithmetic as stepping the TorchRL stack (``test_tensor_loop_matches_the_torchrl_stack``)."""
-        P, H = acts.shape[-3], acts.shape[-2]
-        ret = torch.zeros(*obs.shape[:-1], 1, device=obs.device)
+        arithmetic as stepping the TorchRL stack (``test_tensor_loop_matches_the_torchrl_stack``).
+
+        Args:
+            stack: the transforms (:meth:`_tensor_stack`).
+            obs: ``(B, N, P, d_s)`` the initial states of each candidate's ``P`` particles (the same
+                state for all of them).
+            action_sequences: ``(B, N, H, d)``, a candidate's actions, shared by its particles.
+            member: ``(B, N, P)`` each particle's member (trajectory sampling) or ``None``.
+
+        Returns:
+            ``(B, N, P, 1)`` returns.
+        """
+        B, N, P = obs.shape[:-1]
+        H = action_sequences.shape[-2]
+        # The action transforms map each step's action alone: once for the whole horizon (not once
+        # per step), laid out step by step so that a step's entries are contiguous, (B, N, 1, k);
+        # so are the actions as the network takes them.
+        entries = {"action": action_sequences}
+        for t in reversed(stack):  # inverse transforms run outermost first, as in TorchRL
+            entries = t.plan_action(entries)
+        entries = {k: v.movedim(-2, 0).unsqueeze(-2).contiguous() for k, v in entries.items()}
+        model_actions = self.world_model.normalized_actions(entries["action"])
+        if self.deterministic and P == 1:
+            return self._deterministic_returns(stack, obs, entries, model_actions)
+        ret = torch.zeros(B, N, P, 1, device=obs.device)
         for h in range(H):
-            # at h = 0 a candidate's particles share its start state and first action: one model
-            # call serves them all (1 / H of a stochastic plan's network work)
-            shared = P if h == 0 and P > 1 else 1
-            entries = {"action": acts[..., :1, h, :] if shared > 1 else acts[..., h, :]}
-            for t in reversed(stack):  # inverse transforms run outermost first, as in TorchRL
-                entries = t.plan_action(entries)
-            nxt, sigma = self.propagate(obs[..., :1, :] if shared > 1 else obs, entries["action"],
-                                        entries.get("eta"), member, particles=shared)
-            if shared > 1:
-                entries = {k: v.expand(*nxt.shape[:-1], v.shape[-1]) for k, v in entries.items()}
+            step = {k: v[h] for k, v in entries.items()}
+            if h == 0 and P > 1:
+                # a candidate's particles share its start state and first action: one model call
+                # serves them all (1 / H of a stochastic plan's network work)
+                nxt, sigma = self._propagate(obs[..., :1, :], model_actions[0], step.get("eta"), member, P)
+                step = {k: v.expand(B, N, P, v.shape[-1]) for k, v in step.items()}
+            else:
+                step = {k: v.expand(B, N, P, v.shape[-1]) for k, v in step.items()}
+                nxt, sigma = self._propagate(obs, model_actions[h].expand(B, N, P, -1), step.get("eta"), member)
             reward = torch.zeros_like(ret)
             for t in stack:
-                reward = t.plan_reward(obs, entries["action"], nxt, sigma, reward)
+                reward = t.plan_reward(obs, step["action"], nxt, sigma, reward)
             ret += reward.reshape(ret.shape).float()
             obs = nxt
         return ret
+
+    def _deterministic_returns(self, stack, obs, entries, model_actions) -> torch.Tensor:
+        """:meth:`_returns_on_tensors` with deterministic propagation and one particle per candidate
+        (``obs`` ``(B, N, 1, d_s)``; ``entries`` and ``model_actions`` step-major, ``(H, B, N, 1,
+        k)``): the model's steps laid out once (:meth:`EnsembleWorldModel.deterministic_rollout`),
+        on flat ``(B * N, k)`` rows; the rewards as the transforms compute them."""
+        B, N, _, d_s = obs.shape
+        H = model_actions.shape[0]
+        eta = None
+        if self.mode == "optimistic":
+            eta = entries.get("eta")
+            self._check_eta(eta, (H, *obs.shape))
+            eta = eta.reshape(H, B * N, d_s)
+        obs = obs.reshape(B * N, d_s)
+        rollout = self.world_model.deterministic_rollout(obs, model_actions.reshape(H, B * N, -1), eta)
+        actions = entries["action"].reshape(H, B * N, -1).unbind(0)
+        ret = torch.zeros(B * N, 1, device=obs.device)
+        for action, (nxt, sigma) in zip(actions, rollout):
+            reward = torch.zeros_like(ret)
+            for t in stack:
+                reward = t.plan_reward(obs, action, nxt, sigma, reward)
+            ret += reward.reshape(ret.shape)
+            obs = nxt
+        return ret.reshape(B, N, 1, 1)
 
     def _returns_through_step(self, env, obs, acts, member) -> torch.Tensor:
         """Any transform stack: TorchRL's ``env.step`` on a tensordict per horizon step."""

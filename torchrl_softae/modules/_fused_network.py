@@ -77,12 +77,50 @@ class PackedNetworkBase:
         self.__init__(state["layers"], state["in_features"])
 
 
-def run(kernel: Callable, network: PackedNetworkBase, x: torch.Tensor, out_features: int) -> torch.Tensor:
-    """One call of a whole-network kernel.
+def prepare(kernel: Callable, network: PackedNetworkBase, x: torch.Tensor, out_features: int,
+            out: torch.Tensor | None = None) -> tuple[Callable[[], None], torch.Tensor]:
+    """One call of a whole-network kernel on fixed buffers, checked and with its arguments
+    prepared once: a planning rollout runs it at every step with nothing else in Python.
 
     Args:
         kernel: the compiled kernel's entry (it takes the addresses of ``x``, the output and
             ``network``'s packed layers, csrc/whole_network.h).
+        network: the packed layers.
+        x: ``(N, network.in_features)`` contiguous fp32 on the CPU, the input every member
+            shares. The call reads it where it lies: the caller keeps it alive and writes it in
+            place.
+        out_features: the last layer's outputs to compute (its first ``C``).
+        out: ``(L, N, C)`` contiguous fp32 to write (a new tensor if ``None``).
+
+    Returns:
+        the call (no arguments; the output is written in place) and ``out``.
+    """
+    if (x.dim() != 2 or x.shape[1] != network.in_features or x.dtype != torch.float32 or x.device.type != "cpu"
+            or not x.is_contiguous()):
+        raise ValueError(f"{network.kernel}.forward: x {tuple(x.shape)} {x.dtype} on {x.device}, expected "
+                         f"(N, {network.in_features}) float32 on the CPU, contiguous")
+    shape = (network.members, x.shape[0], out_features)
+    if out is None:
+        out = torch.empty(shape, dtype=torch.float32)
+    elif tuple(out.shape) != shape or out.dtype != torch.float32 or not out.is_contiguous() or out.device.type != "cpu":
+        raise ValueError(f"{network.kernel}.forward: out {tuple(out.shape)} {out.dtype}, expected {shape} contiguous "
+                         "float32 on the CPU")
+    arguments = (x.data_ptr(), x.shape[0], x.shape[1], out.data_ptr(), out_features, network.members,
+                 *network._arguments, torch.get_num_threads())
+    name = f"torchrl_softae::{network.kernel}"
+
+    def call() -> None:
+        with seen_by_profiler(name):
+            kernel(*arguments)
+
+    return call, out
+
+
+def run(kernel: Callable, network: PackedNetworkBase, x: torch.Tensor, out_features: int) -> torch.Tensor:
+    """One call of a whole-network kernel (:func:`prepare`, run at once).
+
+    Args:
+        kernel: the compiled kernel's entry.
         network: the packed layers.
         x: ``(N, network.in_features)`` fp32 on the CPU, the input every member shares.
         out_features: the last layer's outputs to return (its first ``C``).
@@ -90,12 +128,6 @@ def run(kernel: Callable, network: PackedNetworkBase, x: torch.Tensor, out_featu
     Returns:
         ``(L, N, C)`` fp32.
     """
-    if x.dim() != 2 or x.shape[1] != network.in_features or x.dtype != torch.float32 or x.device.type != "cpu":
-        raise ValueError(f"{network.kernel}.forward: x {tuple(x.shape)} {x.dtype} on {x.device}, expected "
-                         f"(N, {network.in_features}) float32 on the CPU")
-    x = x.contiguous()
-    out = torch.empty(network.members, x.shape[0], out_features, dtype=torch.float32)
-    with seen_by_profiler(f"torchrl_softae::{network.kernel}"):
-        kernel(x.data_ptr(), x.shape[0], x.shape[1], out.data_ptr(), out_features, network.members,
-                          *network._arguments, torch.get_num_threads())
+    call, out = prepare(kernel, network, x.contiguous(), out_features)
+    call()
     return out

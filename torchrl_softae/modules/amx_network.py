@@ -12,14 +12,15 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_softae.modules._fused_network import PackedLayer, PackedNetworkBase, run
+from torchrl_softae.modules._fused_network import PackedLayer, PackedNetworkBase, prepare, run
 
 try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
     from torchrl_softae.modules import _amx_network
 except ImportError:
     _amx_network = None
 
-__all__ = ["available", "why_not", "cache_tag", "pack_layer", "pack_network", "forward", "PackedLayer", "PackedNetwork"]
+__all__ = ["available", "why_not", "cache_tag", "pack_layer", "pack_network", "forward", "prepare_forward",
+           "PackedLayer", "PackedNetwork"]
 
 #: features are padded to multiples of this (a tile's 32 bf16 inputs; two 16-column tiles)
 _BLOCK = 32
@@ -118,3 +119,11 @@ def forward(x: torch.Tensor, network: PackedNetwork, out_features: int) -> torch
     if not available():
         raise RuntimeError(f"amx_network.forward: not available here ({why_not()})")
     return run(_amx_network.forward, network, x, out_features)
+
+
+def prepare_forward(x: torch.Tensor, network: PackedNetwork, out_features: int, out: torch.Tensor | None = None):
+    """:func:`forward` on the fixed buffers ``x`` and ``out``, prepared once
+    (:func:`~._fused_network.prepare`): returns the call and its output."""
+    if not available():
+        raise RuntimeError(f"amx_network.forward: not available here ({why_not()})")
+    return prepare(_amx_network.forward, network, x, out_features, out)

@@ -20,6 +20,7 @@ import math
 import os
 import weakref
 from collections.abc import Sequence
+from types import SimpleNamespace
 
 import torch
 from tensordict import TensorDictBase
@@ -36,7 +37,7 @@ from torchrl_softae.modules import silu_kernel as _silu_kernel
 from torchrl_softae.modules.paths import INFERENCE_PATHS
 from torchrl_softae.modules.precision import onednn_bf16_available, resolve_planning_dtype
 
-__all__ = ["EnsembleLinear", "Normalizer", "EnsembleWorldModel", "ensemble_std", "symlog", "symexp"]
+__all__ = ["DeterministicRollout", "EnsembleLinear", "Normalizer", "EnsembleWorldModel", "ensemble_std", "symlog", "symexp"]
 
 
 def _conv_weight_packer():
@@ -275,6 +276,13 @@ class EnsembleWorldModel(TensorDictModuleBase):
         self._exact_pack_rows: set[int] = set()  # row counts whose conv weights are packed exactly
         self._path_memo: dict = {}  # measured choices (paths.choose) this model already looked up
         _watch_optimizer_steps(self)
+
+    def __getstate__(self) -> dict:
+        # a copy prepares its own rollouts: the prepared calls read the addresses of this model's
+        # buffers (and cannot be pickled)
+        state = super().__getstate__().copy()
+        state["_inference_cache"] = {k: v for k, v in self._inference_cache.items() if k[0] != "rollout"}
+        return state
 
     def __setstate__(self, state) -> None:  # copies and unpickled models are watched too
         super().__setstate__(state)
@@ -701,14 +709,31 @@ class EnsembleWorldModel(TensorDictModuleBase):
         ``observation`` ``(N, d_s)`` and ``action`` ``(N, d_a)`` (shared by all members), or with a
         leading member dim ``(L, N, ...)`` (each member on its own minibatch, for training).
         """
-        return self.network(self._normalized_input(observation, action), with_logvar, bound_logvar)
+        return self.network(self.network_input(observation, action), with_logvar, bound_logvar)
 
-    def _normalized_input(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return self.input_normalizer.normalize(torch.cat([self._to_model_space(observation), action], -1))
+    def network_input(self, observation: torch.Tensor, action: torch.Tensor,
+                      action_normalized: bool = False) -> torch.Tensor:
+        """The network's input ``(..., d_s + d_a)`` at ``(s, a)``: states in the model's space and
+        actions, normalized column by column (the actions already, with ``action_normalized``)."""
+        d = self.observation_dim
+        norm = self.input_normalizer
+        if not action_normalized:
+            action = self.normalized_actions(action)
+        return torch.cat([(self._to_model_space(observation) - norm.loc[:d]) / norm.scale[:d], action], -1)
+
+    def normalized_actions(self, action: torch.Tensor) -> torch.Tensor:
+        """Actions ``(..., d_a)`` as the network takes them (its input's action columns, normalized).
+
+        A planner knows its candidates' actions for the whole horizon: normalized once, they are
+        passed to :meth:`predict_moments` / :meth:`predict_members` with ``action_normalized=True``
+        at every step (the same values as normalizing them there)."""
+        d = self.observation_dim
+        norm = self.input_normalizer
+        return (action - norm.loc[d:]) / norm.scale[d:]
 
     def predict_members(
         self, observation: torch.Tensor, action: torch.Tensor, with_aleatoric: bool = True,
-        member_index: torch.Tensor | None = None,
+        member_index: torch.Tensor | None = None, *, action_normalized: bool = False,
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Every member's next-state mean and aleatoric std in original units.
 
@@ -717,6 +742,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
             with_aleatoric: also compute the aleatoric std (else ``None`` is returned for it).
             member_index: ``(*B,)`` member per row (trajectory sampling): the aleatoric std is then
                 computed for that member only and returned with shape ``(*B, d_s)``.
+            action_normalized: ``action`` is :meth:`normalized_actions` of the actions.
 
         Returns:
             ``(L, *B, d_s)`` member means [NN_l(s, a)] and ``(L, *B, d_s)`` aleatoric stds.
@@ -724,7 +750,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         batch = observation.shape[:-1]
         obs = observation.reshape(-1, self.observation_dim)
         act = action.reshape(-1, self.action_dim)
-        raw = self.network_output(self._normalized_input(obs, act), with_aleatoric)
+        raw = self.network_output(self.network_input(obs, act, action_normalized), with_aleatoric)
         return self._members_from_output(raw, obs, batch, with_aleatoric, member_index)
 
     def _members_from_output(self, raw, obs, batch, with_aleatoric, member_index):
@@ -771,7 +797,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
 
     def predict_moments(
         self, observation: torch.Tensor, action: torch.Tensor, with_aleatoric: bool = False,
-        member_index: torch.Tensor | None = None,
+        member_index: torch.Tensor | None = None, *, action_normalized: bool = False,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """What propagation needs from the ensemble at ``(s, a)``, without the member means.
 
@@ -779,6 +805,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
             observation: ``(*B, d_s)``; action: ``(*B, d_a)``.
             with_aleatoric: also return the aleatoric std.
             member_index: ``(*B,)`` member per row (trajectory sampling), or ``None``.
+            action_normalized: ``action`` is :meth:`normalized_actions` of the actions.
 
         Returns:
             ``mu`` [mu] and ``sigma`` [sigma] ``(*B, d_s)``; the mean of member ``member_index``
@@ -797,9 +824,78 @@ class EnsembleWorldModel(TensorDictModuleBase):
         act = action.reshape(-1, self.action_dim)
         if member_index is not None:
             member_index = member_index.reshape(-1)
-        raw = self.network_output(self._normalized_input(obs, act), with_aleatoric)
+        raw = self.network_output(self.network_input(obs, act, action_normalized), with_aleatoric)
+        mu, sigma, member_mean, ale = self._moments_from_output(raw, obs, with_aleatoric, member_index)
+        shape = (*batch, d)
+        return (mu.reshape(shape), sigma.reshape(shape), None if member_mean is None else member_mean.reshape(shape),
+                None if ale is None else ale.reshape(shape))
+
+    def deterministic_rollout(self, observation: torch.Tensor, normalized_actions: torch.Tensor,
+                              eta: torch.Tensor | None = None) -> "DeterministicRollout":
+        """The model steps of a deterministic planning rollout (Mean-AE: ``s' = mu``; SoftAE and
+        H-UCRL: ``s' = mu + sigma * eta``), laid out once: see :class:`DeterministicRollout`.
+
+        Args:
+            observation: ``(M, d_s)`` the initial states of ``M`` candidates.
+            normalized_actions: ``(H, M, d_a)`` their actions, step by step, as the network takes
+                them (:meth:`normalized_actions`).
+            eta: ``(H, M, d_s)`` the hallucinated control with beta applied, or ``None``.
+        """
+        return DeterministicRollout(self, observation, normalized_actions, eta)
+
+    def _rollout_layout(self, steps: int, rows: int, with_eta: bool, device) -> SimpleNamespace:
+        """The buffers of a :class:`DeterministicRollout` of ``steps`` x ``rows`` (every step's
+        network input, initial states, ``eta``, and each step's ``s'`` and ``sigma``) and, where
+        the inference path is a whole-network kernel and the moments kernel applies, its steps as
+        prepared kernel calls (``compiled``: ``[(network call, moments call, (s', sigma)), ...]``;
+        else ``None``). Kept for the next rollout of the same shape (a planner scores its
+        iterations' candidates with the same shapes): preparing the calls cost more than a step."""
+        d, d_a = self.observation_dim, self.action_dim
+        dtype = self.planning_dtype or torch.float32
+        cols = d if self.probabilistic else None  # the mean head only, as network_output(with_logvar=False)
+        compiled = (not torch.is_grad_enabled() and torch.device(device).type == "cpu" and self.fused_moments
+                    and not self.symlog_observations and _moments_kernel.available()
+                    and self.ensemble_size <= _moments_kernel.MAX_MEMBERS)
+        path = packed = None
+        if compiled:
+            path = self._inference_path(torch.empty(rows, d + d_a), dtype, cols)
+            compiled = path in _WHOLE_NETWORK_KERNELS
+        if compiled:
+            packed = self._packed_network(path, dtype, cols)
+        key = ("rollout", steps, rows, with_eta, dtype, path, torch.get_num_threads(), str(device))
+        hit = self._inference_cache.get(key)
+        if hit is not None and hit.packed is packed:
+            return hit
+        layout = SimpleNamespace(
+            packed=packed, inputs=torch.empty(steps, rows, d + d_a, device=device),
+            observation=torch.empty(rows, d, device=device),
+            eta=torch.empty(steps, rows, d, device=device) if with_eta else None,
+            states=torch.empty(steps, rows, d, device=device), sigmas=torch.empty(steps, rows, d, device=device),
+            compiled=None)
+        if compiled:
+            raw = torch.empty(self.ensemble_size, rows, cols or self.layers[-1].out_features)
+            out, norm = self.output_normalizer, self.input_normalizer
+            in_loc, in_scale = norm.loc[:d], norm.scale[:d]
+            inputs, states, sigmas, eta = layout.inputs, layout.states, layout.sigmas, layout.eta
+            layout.compiled = []
+            for h in range(steps):
+                network, _ = _WHOLE_NETWORK_KERNELS[path].prepare_forward(inputs[h], packed, raw.shape[-1], out=raw)
+                moments, _ = _moments_kernel.prepare_moments(
+                    raw, layout.observation if h == 0 else states[h - 1], out.loc, out.scale, d,
+                    eta=None if eta is None else eta[h], next_input=inputs[h + 1] if h + 1 < steps else None,
+                    input_loc=in_loc, input_scale=in_scale, out=(states[h], sigmas[h]))
+                layout.compiled.append((network, moments, (states[h], sigmas[h])))
+        self._inference_cache[key] = layout
+        return layout
+
+    def _moments_from_output(self, raw, obs, with_aleatoric=False, member_index=None, eta=None, next_input=None):
+        """:meth:`predict_moments` (and :meth:`rollout_step`'s ``eta`` and ``next_input``) from the
+        raw network output ``raw`` ``(L, N, C)`` at the flat states ``obs`` ``(N, d_s)``; flat
+        ``(N, d_s)`` results."""
+        d = self.observation_dim
         fused = (self.fused_moments and not self.symlog_observations and _moments_kernel.applies(raw)
                  and (member_index is not None or not with_aleatoric))
+        norm = self.input_normalizer
         if fused:
             with_logvar = with_aleatoric and self.probabilistic
             out = self.output_normalizer
@@ -807,26 +903,30 @@ class EnsembleWorldModel(TensorDictModuleBase):
             bounds = None
             if with_logvar and bool((self.max_logvar - self.min_logvar).max() < _moments_kernel.MAX_LOGVAR_SPAN):
                 bounds = (self.min_logvar, self.max_logvar)
+            next_state = {} if next_input is None else dict(
+                next_input=next_input, input_loc=norm.loc[:d], input_scale=norm.scale[:d])
             mu, sigma, member_mean, second = _moments_kernel.ensemble_moments(
-                raw, obs, out.loc, out.scale, d, member_index, with_logvar, bounds)
+                raw, obs, out.loc, out.scale, d, member_index, with_logvar, bounds, eta=eta, **next_state)
             ale = None
             if with_aleatoric:
                 if not with_logvar:
                     ale = torch.zeros_like(mu)
                 else:  # the raw log-variance where the kernel did not bound it
                     ale = second if bounds is not None else self._aleatoric_std(self._bound_logvar(second))
-        else:
-            members, ale = self._members_from_output(raw, obs, (obs.shape[0],), with_aleatoric, member_index)
-            mu = members.mean(0)
-            sigma = ensemble_std(members, mu)
-            member_mean = None
-            if member_index is not None:
-                member_mean = members.gather(0, member_index.reshape(1, -1, 1).expand(1, *mu.shape)).squeeze(0)
-            elif ale is not None:
-                ale = ale.square().mean(0).sqrt()
-        shape = (*batch, d)
-        return (mu.reshape(shape), sigma.reshape(shape), None if member_mean is None else member_mean.reshape(shape),
-                None if ale is None else ale.reshape(shape))
+            return mu, sigma, member_mean, ale
+        members, ale = self._members_from_output(raw, obs, (obs.shape[0],), with_aleatoric, member_index)
+        mu = members.mean(0)
+        sigma = ensemble_std(members, mu)
+        member_mean = None
+        if member_index is not None:
+            member_mean = members.gather(0, member_index.reshape(1, -1, 1).expand(1, *mu.shape)).squeeze(0)
+        elif ale is not None:
+            ale = ale.square().mean(0).sqrt()
+        if eta is not None:
+            mu = torch.addcmul(mu, sigma, eta)
+        if next_input is not None:
+            next_input[:, :d] = (self._to_model_space(mu) - norm.loc[:d]) / norm.scale[:d]
+        return mu, sigma, member_mean, ale
 
     def predict(
         self, observation: torch.Tensor, action: torch.Tensor, check: bool = True
@@ -848,3 +948,82 @@ class EnsembleWorldModel(TensorDictModuleBase):
         tensordict.set(self.out_keys[1], sigma)
         tensordict.set(self.out_keys[2], aleatoric)
         return tensordict
+
+
+class DeterministicRollout:
+    """The model steps of a deterministic planning rollout of ``M`` candidates, laid out once.
+
+    Mean-AE propagates ``s' = mu``, SoftAE and H-UCRL ``s' = mu + sigma * eta`` [the optimistic
+    mean, eta the hallucinated control with beta applied]. A planner knows its candidates' actions
+    for the whole horizon: every step's network input is written before the first step, its action
+    columns at once, and each step writes the next input's state columns in the same pass that
+    computes ``mu`` and ``sigma``. Where the inference path is a whole-network kernel
+    (:mod:`.amx_network`, :mod:`.fma_network`) and the moments kernel applies
+    (:mod:`.moments_kernel`), a step is two compiled calls, prepared once per shape: right after a
+    network call every torch op and line of Python runs on cache-cold code and data (on the AMX
+    Xeon a 4-element add took 30 us there against 2 us in a loop), and a step of a one-particle
+    arm plan spent about 400 us between its network calls before. Elsewhere each step runs
+    :meth:`EnsembleWorldModel.network_output` and the torch ops of the moments, with the same
+    values (``test_deterministic_rollout_matches_the_torch_ops``).
+
+    Inference only (``torch.no_grad()``), in the model's ``planning_dtype``; the parameters must
+    not change while it runs. Iterating yields ``(s', sigma)``, ``(M, d_s)`` each, step by step,
+    once. The yielded tensors are buffers that the model's next rollout of the same shape writes
+    again (preallocated, as a planner's iterations reuse them): copy them to keep them.
+
+    Args:
+        model: the ensemble.
+        observation: ``(M, d_s)`` the initial states.
+        normalized_actions: ``(H, M, d_a)`` (:meth:`EnsembleWorldModel.normalized_actions`).
+        eta: ``(H, M, d_s)`` or ``None``.
+
+    Examples:
+        >>> model = EnsembleWorldModel(3, 1).eval()
+        >>> acts = model.normalized_actions(torch.zeros(4, 2, 1))  # H = 4 steps of 2 candidates
+        >>> with torch.no_grad():
+        ...     steps = [(s.clone(), sigma.clone()) for s, sigma in model.deterministic_rollout(torch.zeros(2, 3), acts)]
+        >>> len(steps), steps[-1][0].shape  # (s', sigma) per step
+        (4, torch.Size([2, 3]))
+    """
+
+    def __init__(self, model: EnsembleWorldModel, observation: torch.Tensor, normalized_actions: torch.Tensor,
+                 eta: torch.Tensor | None = None):
+        d = model.observation_dim
+        if normalized_actions.dim() != 3 or normalized_actions.shape[-1] != model.action_dim:
+            raise ValueError(f"DeterministicRollout: normalized_actions has shape {tuple(normalized_actions.shape)}, "
+                             f"expected (H, M, {model.action_dim})")
+        H, M, _ = normalized_actions.shape
+        if observation.shape != (M, d):
+            raise ValueError(f"DeterministicRollout: observation has shape {tuple(observation.shape)}, "
+                             f"expected ({M}, {d})")
+        if eta is not None and eta.shape != (H, M, d):
+            raise ValueError(f"DeterministicRollout: eta has shape {tuple(eta.shape)}, expected ({H}, {M}, {d})")
+        self.model = model
+        self._layout = layout = model._rollout_layout(H, M, eta is not None, observation.device)
+        # every step's network input: the actions' columns at once, the first state's now, each
+        # next state's by the step before
+        layout.inputs[..., d:] = normalized_actions
+        layout.inputs[0] = model.network_input(observation, normalized_actions[0], action_normalized=True)
+        layout.observation.copy_(observation)
+        if eta is not None:
+            layout.eta.copy_(eta)
+
+    def __len__(self) -> int:
+        return self._layout.inputs.shape[0]
+
+    def __iter__(self):
+        layout = self._layout
+        if layout.compiled is not None:
+            for network, moments, step in layout.compiled:
+                network()
+                moments()
+                yield step
+            return
+        model, inputs, eta = self.model, layout.inputs, layout.eta
+        H = inputs.shape[0]
+        state = layout.observation
+        for h in range(H):
+            raw = model.network_output(inputs[h], with_logvar=False)
+            state, sigma, _, _ = model._moments_from_output(
+                raw, state, eta=None if eta is None else eta[h], next_input=inputs[h + 1] if h + 1 < H else None)
+            yield state, sigma

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_softae.modules._fused_network import PackedLayer, PackedNetworkBase, run
+from torchrl_softae.modules._fused_network import PackedLayer, PackedNetworkBase, prepare, run
 from torchrl_softae.modules._instruction_sets import instruction_set_functions
 
 try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
@@ -23,7 +23,7 @@ except ImportError:
     _fma_network = None
 
 __all__ = ["available", "why_not", "isa", "supported_isas", "use_isa", "cache_tag", "pack_layer", "pack_network",
-           "forward", "PackedLayer", "PackedNetwork", "DTYPES"]
+           "forward", "prepare_forward", "PackedLayer", "PackedNetwork", "DTYPES"]
 
 #: output columns per packed weight panel (two AVX-512 registers, four AVX2 ones)
 _PANEL = 32
@@ -157,7 +157,17 @@ def forward(x: torch.Tensor, network: PackedNetwork, out_features: int) -> torch
     activations rounded to bf16 (the activations computed to 1e-4 relative before rounding), fp32
     accumulation, as the AMX kernel and torch's bf16 paths compute it.
     """
+    return run(_entry(network), network, x, out_features)
+
+
+def prepare_forward(x: torch.Tensor, network: PackedNetwork, out_features: int, out: torch.Tensor | None = None):
+    """:func:`forward` on the fixed buffers ``x`` and ``out``, prepared once
+    (:func:`~._fused_network.prepare`): returns the call and its output."""
+    return prepare(_entry(network), network, x, out_features, out)
+
+
+def _entry(network: PackedNetwork):
+    """The kernel's entry for the packed network's dtype."""
     if not available(network.dtype):
         raise RuntimeError(f"fma_network.forward: not available here in {network.dtype} ({why_not(network.dtype)})")
-    entry = _fma_network.forward if network.dtype == torch.float32 else _fma_network.forward_bf16
-    return run(entry, network, x, out_features)
+    return _fma_network.forward if network.dtype == torch.float32 else _fma_network.forward_bf16

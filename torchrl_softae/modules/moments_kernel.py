@@ -9,6 +9,8 @@ present (an optional extension: without it :func:`available` is ``False`` and
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 
 from torchrl_softae.modules._instruction_sets import instruction_set_functions
@@ -24,7 +26,7 @@ if _moments is not None and not _moments.supported():  # built, but this CPU lac
 #: members the kernel keeps in registers (``MAX_VECTOR_MEMBERS`` in moments.c); 0 without the kernel
 MAX_MEMBERS = 0 if _moments is None else _moments.MAX_MEMBERS
 
-__all__ = ["MAX_MEMBERS", "MAX_LOGVAR_SPAN", "available", "applies", "ensemble_moments", "isa", "supported_isas", "use_isa"]
+__all__ = ["MAX_MEMBERS", "MAX_LOGVAR_SPAN", "available", "applies", "ensemble_moments", "prepare_moments", "isa", "supported_isas", "use_isa"]
 
 _DTYPE_CODES = {torch.float32: 0, torch.bfloat16: 1}
 
@@ -54,9 +56,29 @@ def applies(output: torch.Tensor) -> bool:
 def ensemble_moments(
     output: torch.Tensor, state: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor, d: int,
     member_index: torch.Tensor | None = None, with_logvar: bool = False,
-    logvar_bounds: tuple[torch.Tensor, torch.Tensor] | None = None,
+    logvar_bounds: tuple[torch.Tensor, torch.Tensor] | None = None, eta: torch.Tensor | None = None,
+    next_input: torch.Tensor | None = None, input_loc: torch.Tensor | None = None,
+    input_scale: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-    """Moments of the member means ``m_l = state + loc + scale * output[l, :, :d]``.
+    """Moments of the member means ``m_l = state + loc + scale * output[l, :, :d]``
+    (:func:`prepare_moments`, run at once; its arguments)."""
+    call, outputs = prepare_moments(output, state, loc, scale, d, member_index, with_logvar, logvar_bounds, eta,
+                                    next_input, input_loc, input_scale)
+    call()
+    return outputs
+
+
+def prepare_moments(
+    output: torch.Tensor, state: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor, d: int,
+    member_index: torch.Tensor | None = None, with_logvar: bool = False,
+    logvar_bounds: tuple[torch.Tensor, torch.Tensor] | None = None, eta: torch.Tensor | None = None,
+    next_input: torch.Tensor | None = None, input_loc: torch.Tensor | None = None,
+    input_scale: torch.Tensor | None = None, out: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> tuple[Callable[[], None], tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]]:
+    """Moments of the member means ``m_l = state + loc + scale * output[l, :, :d]``: the kernel's
+    call on these buffers, checked and with its arguments prepared once (a planning rollout runs
+    it at every step with nothing else in Python), and the outputs it writes. The call reads its
+    inputs where they lie when it runs (``member_index`` is checked here).
 
     Args:
         output: ``(L, N, C)`` raw network output, fp32 or bf16, any member and row strides (unit
@@ -70,20 +92,50 @@ def ensemble_moments(
             units, ``scale * exp(v / 2)`` of its bounded log-variance ``v``, instead of the raw
             log-variance (one exp per value where the torch ops make nine passes). Needs
             ``max_logvar - min_logvar <`` :data:`MAX_LOGVAR_SPAN` (else ``exp`` overflows in fp32).
+        eta: ``(N, d)`` fp32, the hallucinated control times beta: the first output is then
+            ``mu + sigma * eta`` (SoftAE's optimistic next state) instead of ``mu``.
+        next_input: ``(N, K)`` fp32 with unit column stride, ``K >= d``: its first ``d`` columns
+            receive the first output normalized, ``(out - input_loc) / input_scale`` (``(d,)``
+            each): the state columns of the next step's network input.
+
+        out: ``(mu, sigma)`` to write, ``(N, d)`` contiguous fp32 each (new tensors if ``None``).
 
     Returns:
-        ``mu`` and ``sigma`` ``(N, d)`` [mu, sigma; sigma with Bessel's correction], and with
-        ``member_index`` that member's mean and (with ``with_logvar``) raw log-variance or
-        aleatoric std ``(N, d)``, else ``None``. All fp32. Only where :func:`applies` holds.
+        The call, and ``mu`` (or ``mu + sigma * eta``) and ``sigma`` ``(N, d)`` [mu, sigma; sigma
+        with Bessel's correction], and with ``member_index`` that member's mean and (with
+        ``with_logvar``) raw log-variance or aleatoric std ``(N, d)``, else ``None``. All fp32.
+        Only where :func:`applies` holds.
     """
     L, n, cols = output.shape
     if cols < (2 * d if with_logvar else d):
         raise ValueError(f"ensemble_moments: output has {cols} columns, expected at least {2 * d if with_logvar else d}")
-    state, loc, scale = (t.float().contiguous() for t in (state, loc.reshape(d), scale.reshape(d)))
+    state, loc, scale = (_fp32(t) for t in (state, loc.reshape(d), scale.reshape(d)))
     if state.shape != (n, d):
         raise ValueError(f"ensemble_moments: state has shape {tuple(state.shape)}, expected ({n}, {d})")
-    mu = torch.empty(n, d)
-    sigma = torch.empty(n, d)
+    eta_address = next_address = next_stride = in_loc_address = in_scale_address = 0
+    if eta is not None:
+        eta = _fp32(eta)
+        if eta.shape != (n, d):
+            raise ValueError(f"ensemble_moments: eta has shape {tuple(eta.shape)}, expected ({n}, {d})")
+        eta_address = eta.data_ptr()
+    if next_input is not None:
+        if (next_input.dim() != 2 or next_input.shape[0] != n or next_input.shape[1] < d or next_input.stride(1) != 1
+                or next_input.dtype != torch.float32 or next_input.device.type != "cpu"):
+            raise ValueError(f"ensemble_moments: next_input is {tuple(next_input.shape)} {next_input.dtype} with "
+                             f"strides {next_input.stride()}, expected ({n}, >= {d}) float32 on the CPU with unit "
+                             "column stride")
+        if input_loc is None or input_scale is None:
+            raise ValueError("ensemble_moments: next_input needs input_loc and input_scale")
+        input_loc, input_scale = _fp32(input_loc.reshape(d)), _fp32(input_scale.reshape(d))
+        next_address, next_stride = next_input.data_ptr(), next_input.stride(0)
+        in_loc_address, in_scale_address = input_loc.data_ptr(), input_scale.data_ptr()
+    if out is None:
+        mu, sigma = torch.empty(n, d), torch.empty(n, d)
+    else:
+        mu, sigma = out
+        if any(t.shape != (n, d) or t.dtype != torch.float32 or not t.is_contiguous() for t in out):
+            raise ValueError(f"ensemble_moments: out is {[tuple(t.shape) for t in out]}, expected two ({n}, {d}) "
+                             "contiguous float32 tensors")
     picked = picked_logvar = None
     member_address = 0
     if member_index is not None:
@@ -100,13 +152,24 @@ def ensemble_moments(
         if not bool((hi - lo).max() < MAX_LOGVAR_SPAN):
             raise ValueError(f"ensemble_moments: logvar_bounds span {float((hi - lo).max()):.4g}, expected "
                              f"< {MAX_LOGVAR_SPAN}")
-        # kept alive until the kernel returns: it reads their addresses
         hi, std_scale, span = hi.contiguous(), (scale * (0.5 * lo).exp()).contiguous(), (hi - lo).exp().contiguous()
         bounds = (hi.data_ptr(), std_scale.data_ptr(), span.data_ptr())
-    with seen_by_profiler("torchrl_softae::ensemble_moments"):
-        _moments.ensemble_moments(
-            output.data_ptr(), output.stride(0), output.stride(1), _DTYPE_CODES[output.dtype], L, n, d,
-            d if with_logvar else -1, state.data_ptr(), loc.data_ptr(), scale.data_ptr(), member_address,
-            mu.data_ptr(), sigma.data_ptr(), 0 if picked is None else picked.data_ptr(),
-            0 if picked_logvar is None else picked_logvar.data_ptr(), *bounds, torch.get_num_threads())
-    return mu, sigma, picked, picked_logvar
+        logvar_bounds = (hi, std_scale, span)
+    arguments = (output.data_ptr(), output.stride(0), output.stride(1), _DTYPE_CODES[output.dtype], L, n, d,
+                 d if with_logvar else -1, state.data_ptr(), loc.data_ptr(), scale.data_ptr(), member_address,
+                 mu.data_ptr(), sigma.data_ptr(), 0 if picked is None else picked.data_ptr(),
+                 0 if picked_logvar is None else picked_logvar.data_ptr(), *bounds, eta_address, next_address,
+                 next_stride, in_loc_address, in_scale_address, torch.get_num_threads())
+    # every tensor whose address the call reads, kept alive with it
+    alive = (output, state, loc, scale, member_index, logvar_bounds, eta, next_input, input_loc, input_scale)
+
+    def call(alive=alive) -> None:
+        with seen_by_profiler("torchrl_softae::ensemble_moments"):
+            _moments.ensemble_moments(*arguments)
+
+    return call, (mu, sigma, picked, picked_logvar)
+
+
+def _fp32(t: torch.Tensor) -> torch.Tensor:
+    """``t`` as a contiguous fp32 tensor, itself when it is one (no call per argument at every step)."""
+    return t if t.dtype == torch.float32 and t.is_contiguous() else t.float().contiguous()

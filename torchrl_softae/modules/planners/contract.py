@@ -79,7 +79,10 @@ class PlanningTransform:
     """
 
     def plan_action(self, entries: dict) -> dict:
-        """The action entries on their way to the model env (``{"action": (*B, d)}`` in)."""
+        """The action entries on their way to the model env (``{"action": (*B, d)}`` in).
+
+        A model env calls it once for whole action sequences (``*B`` ending with the horizon), so
+        it must map each step's action alone, as TorchRL's inverse transforms see one step."""
         return entries
 
     def plan_reward(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor,
