@@ -679,6 +679,20 @@ def test_deterministic_rollout_matches_the_torch_ops():
                 for got, m, s_, a_ in ((theirs, twin, s1, acts1), (mine, model, s0, acts)):
                     for (s, sigma), (s_ref, sigma_ref) in zip(got, reference(s_, a_, None, m)):
                         assert torch.equal(s, s_ref) and torch.equal(sigma, sigma_ref)
+        # two rollouts of one shape at a time (nested, threads) each get buffers of their own; the
+        # first to finish frees its buffers for the next; a rollout runs once
+        s1, acts1 = torch.randn(M, 21, generator=g), torch.rand(H, M, 4, generator=g) * 2 - 1
+        first = model.deterministic_rollout(s0, model.normalized_actions(acts))
+        second = model.deterministic_rollout(s1, model.normalized_actions(acts1))
+        assert first._layout is not second._layout
+        both = [(a[0].clone(), b[0].clone()) for a, b in zip(first, second)]  # their steps interleaved
+        for (got_first, got_second), ref_first, ref_second in zip(both, reference(s0, acts, None),
+                                                                 reference(s1, acts1, None)):
+            assert torch.equal(got_first, ref_first[0]) and torch.equal(got_second, ref_second[0])
+        with pytest.raises(RuntimeError, match="already run"):
+            list(first)
+        third = model.deterministic_rollout(s0, model.normalized_actions(acts))
+        assert third._layout in (first._layout, second._layout)
         with pytest.raises(ValueError, match=r"eta has shape \(4, 37, 20\), expected \(4, 37, 21\)"):
             model.deterministic_rollout(s0, model.normalized_actions(acts), torch.zeros(H, M, 20))
         with pytest.raises(ValueError, match=r"observation has shape \(36, 21\), expected \(37, 21\)"):

@@ -16,6 +16,7 @@ input ``(s, a)`` together with a bounded log-variance (PETS soft bounds). In ori
 """
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import weakref
@@ -843,13 +844,15 @@ class EnsembleWorldModel(TensorDictModuleBase):
         """
         return DeterministicRollout(self, observation, normalized_actions, eta)
 
-    def _rollout_layout(self, steps: int, rows: int, with_eta: bool, device) -> SimpleNamespace:
+    def _rollout_layout(self, steps: int, rows: int, with_eta: bool, device, owner: int) -> SimpleNamespace:
         """The buffers of a :class:`DeterministicRollout` of ``steps`` x ``rows`` (every step's
         network input, initial states, ``eta``, and each step's ``s'`` and ``sigma``) and, where
         the inference path is a whole-network kernel and the moments kernel applies, its steps as
         prepared kernel calls (``compiled``: ``[(network call, moments call, (s', sigma)), ...]``;
         else ``None``). Kept for the next rollout of the same shape (a planner scores its
-        iterations' candidates with the same shapes): preparing the calls cost more than a step."""
+        iterations' candidates with the same shapes): preparing the calls cost more than a step.
+        Held by ``owner`` (a rollout's token) until that rollout has run or is dropped: another
+        rollout of the same shape meanwhile (nested, or from another thread) gets its own."""
         d, d_a = self.observation_dim, self.action_dim
         dtype = self.planning_dtype or torch.float32
         cols = d if self.probabilistic else None  # the mean head only, as network_output(with_logvar=False)
@@ -864,10 +867,11 @@ class EnsembleWorldModel(TensorDictModuleBase):
             packed = self._packed_network(path, dtype, cols)
         key = ("rollout", steps, rows, with_eta, dtype, path, torch.get_num_threads(), str(device))
         hit = self._inference_cache.get(key)
-        if hit is not None and hit.packed is packed:
+        if hit is not None and hit.packed is packed and hit.owner is None:
+            hit.owner = owner
             return hit
         layout = SimpleNamespace(
-            packed=packed, inputs=torch.empty(steps, rows, d + d_a, device=device),
+            owner=owner, packed=packed, inputs=torch.empty(steps, rows, d + d_a, device=device),
             observation=torch.empty(rows, d, device=device),
             eta=torch.empty(steps, rows, d, device=device) if with_eta else None,
             states=torch.empty(steps, rows, d, device=device), sigmas=torch.empty(steps, rows, d, device=device),
@@ -885,7 +889,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
                     eta=None if eta is None else eta[h], next_input=inputs[h + 1] if h + 1 < steps else None,
                     input_loc=in_loc, input_scale=in_scale, out=(states[h], sigmas[h]))
                 layout.compiled.append((network, moments, (states[h], sigmas[h])))
-        self._inference_cache[key] = layout
+        if hit is None or hit.owner is None:  # a rollout still running keeps its own
+            self._inference_cache[key] = layout
         return layout
 
     def _moments_from_output(self, raw, obs, with_aleatoric=False, member_index=None, eta=None, next_input=None):
@@ -950,6 +955,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
         return tensordict
 
 
+#: tokens of DeterministicRollout objects (which one holds a layout of buffers)
+_ROLLOUT_TOKENS = itertools.count()
+
+
 class DeterministicRollout:
     """The model steps of a deterministic planning rollout of ``M`` candidates, laid out once.
 
@@ -969,7 +978,8 @@ class DeterministicRollout:
     Inference only (``torch.no_grad()``), in the model's ``planning_dtype``; the parameters must
     not change while it runs. Iterating yields ``(s', sigma)``, ``(M, d_s)`` each, step by step,
     once. The yielded tensors are buffers that the model's next rollout of the same shape writes
-    again (preallocated, as a planner's iterations reuse them): copy them to keep them.
+    again (preallocated, as a planner's iterations reuse them): copy them to keep them. A rollout
+    built while another of its shape has not run yet (nested, another thread) gets its own.
 
     Args:
         model: the ensemble.
@@ -999,7 +1009,8 @@ class DeterministicRollout:
         if eta is not None and eta.shape != (H, M, d):
             raise ValueError(f"DeterministicRollout: eta has shape {tuple(eta.shape)}, expected ({H}, {M}, {d})")
         self.model = model
-        self._layout = layout = model._rollout_layout(H, M, eta is not None, observation.device)
+        self._token = next(_ROLLOUT_TOKENS)
+        self._layout = layout = model._rollout_layout(H, M, eta is not None, observation.device, self._token)
         # every step's network input: the actions' columns at once, the first state's now, each
         # next state's by the step before
         layout.inputs[..., d:] = normalized_actions
@@ -1013,17 +1024,30 @@ class DeterministicRollout:
 
     def __iter__(self):
         layout = self._layout
-        if layout.compiled is not None:
-            for network, moments, step in layout.compiled:
-                network()
-                moments()
-                yield step
-            return
-        model, inputs, eta = self.model, layout.inputs, layout.eta
-        H = inputs.shape[0]
-        state = layout.observation
-        for h in range(H):
-            raw = model.network_output(inputs[h], with_logvar=False)
-            state, sigma, _, _ = model._moments_from_output(
-                raw, state, eta=None if eta is None else eta[h], next_input=inputs[h + 1] if h + 1 < H else None)
-            yield state, sigma
+        if layout.owner != self._token:
+            raise RuntimeError("DeterministicRollout: already run (a rollout runs once; its buffers are the next's)")
+        try:
+            if layout.compiled is not None:
+                for network, moments, step in layout.compiled:
+                    network()
+                    moments()
+                    yield step
+                return
+            model, inputs, eta = self.model, layout.inputs, layout.eta
+            H = inputs.shape[0]
+            state = layout.observation
+            for h in range(H):
+                raw = model.network_output(inputs[h], with_logvar=False)
+                state, sigma, _, _ = model._moments_from_output(
+                    raw, state, eta=None if eta is None else eta[h], next_input=inputs[h + 1] if h + 1 < H else None)
+                yield state, sigma
+        finally:
+            self._release()
+
+    def _release(self) -> None:
+        if self._layout.owner == self._token:
+            self._layout.owner = None
+
+    def __del__(self):  # dropped without running: its buffers are free for the next rollout
+        if hasattr(self, "_layout"):
+            self._release()
