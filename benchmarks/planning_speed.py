@@ -33,6 +33,9 @@ heavy.
   ...@torch-moments (--compare-moments) the four icem rows with mu and sigma computed by torch ops
                     (EnsembleWorldModel.fused_moments = False) instead of the one-pass kernel
   ...@torch-randn   (--compare-noise) the four icem rows with every normal draw by torch.randn
+  ...@step-loop     (--compare-rollout) the two one-particle icem rows scored by the per-step tensor loop
+                    (EnsembleModelEnv.deterministic_rollouts = False) instead of the model's
+                    deterministic rollout (prepared kernel calls)
                     (normal_kernel.enabled = False) instead of the counter-based kernel
 
 ``--layer-costs`` also times the arm-sized network as the planner runs it, fp32 and bf16 (its
@@ -639,6 +642,9 @@ def main():
                    help="also time the icem rows with every normal draw by torch.randn instead of the noise kernel")
     p.add_argument("--compare-moments", action="store_true",
                    help="also time the icem rows with mu and sigma by torch ops instead of the one-pass kernel")
+    p.add_argument("--compare-rollout", action="store_true",
+                   help="also time the one-particle icem rows scored by the per-step tensor loop instead of the "
+                        "model's deterministic rollout")
     p.add_argument("--layer-costs", action="store_true",
                    help="also time one hidden layer's GEMM, SiLU and fused GEMM + SiLU at the planner's row counts")
     p.add_argument("--network-alone", action="store_true",
@@ -721,10 +727,18 @@ def main():
                 planners[f"{key}@torch-randn"] = icem_contender(key, sample_env, opt_env, icem)
                 torch_randn.add(f"{key}@torch-randn")
 
+        step_loop = set()  # one-particle contenders scored by the per-step loop (the rollout's baseline)
+        if args.compare_rollout:
+            for key in icem_rows:
+                if "dedup" in key:
+                    planners[f"{key}@step-loop"] = icem_contender(key, sample_env, opt_env, icem)
+                    step_loop.add(f"{key}@step-loop")
+
         def configure(key):  # the model as this contender runs it
             model.inference_path = path_of.get(key, "auto")
             model.fused_moments = key not in torch_moments
             normal_kernel.enabled = kernel_noise and key not in torch_randn
+            opt_env.base_env.deterministic_rollouts = key not in step_loop
 
         alone = {}  # contender -> its plan's network calls, replayed alone (--network-alone)
         with torch.no_grad(), warnings.catch_warnings():
@@ -767,6 +781,7 @@ def main():
                         times[f"{key}:network"].append(time.perf_counter() - t)
                 pk = peaks(repeats=2, so_far=pk, precisions=precisions)  # between rounds, so a noisy moment cannot set the peak
         model.inference_path, model.fused_moments, normal_kernel.enabled = "auto", True, kernel_noise
+        opt_env.base_env.deterministic_rollouts = True
         chosen = sorted({f"{'bf16' if k[0] == torch.bfloat16 else 'fp32'} rows<={k[1]}: {v}"
                          for k, v in model._path_memo.items() if isinstance(v, str)})
         timed.append((name, d_s, d_a, H, model, sample_env, planners, times, chosen, alone))

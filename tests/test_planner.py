@@ -320,8 +320,14 @@ def test_tensor_loop_matches_the_torchrl_stack():
         del base.world_model.network_output
         torch.testing.assert_close(fast, slow)
         # the deterministic rollout as prepared kernel calls on a whole-network path (the network
-        # is then called without network_output): the same returns as stepping
+        # is then called without network_output), and the per-step loop it replaces: the same
+        # returns as stepping
         if base.deterministic and particles == 1:
+            base.deterministic_rollouts = False
+            base.set_seed(0)
+            torch.testing.assert_close(base._returns_on_tensors(base._tensor_stack(tenv), obs, acts[:, :, 0], member),
+                                       slow)
+            base.deterministic_rollouts = True
             for path in ("amx-network", "fma-network"):
                 for precision in ("fp32", "bf16"):
                     if path not in base.world_model.available_inference_paths(resolve_planning_dtype(precision) or torch.float32):

@@ -75,6 +75,12 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
 
     member_key = "member_index"
 
+    #: score deterministic one-particle plans (Mean-AE, SoftAE) through the model's
+    #: :meth:`~torchrl_softae.modules.EnsembleWorldModel.deterministic_rollout` (every step's network
+    #: input laid out at once, prepared kernel calls where they run); ``False``: the per-step tensor
+    #: loop that stochastic propagation runs (the same values; to compare)
+    deterministic_rollouts: bool = True
+
     def __init__(
         self,
         world_model: EnsembleWorldModel,
@@ -364,7 +370,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             entries = t.plan_action(entries)
         entries = {k: v.movedim(-2, 0).unsqueeze(-2).contiguous() for k, v in entries.items()}
         model_actions = self.world_model.normalized_actions(entries["action"])
-        if self.deterministic and P == 1:
+        if self.deterministic and P == 1 and self.deterministic_rollouts:
             return self._deterministic_returns(stack, obs, entries, model_actions)
         ret = torch.zeros(B, N, P, 1, device=obs.device)
         for h in range(H):
@@ -400,11 +406,14 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         rollout = self.world_model.deterministic_rollout(obs, model_actions.reshape(H, B * N, -1), eta)
         actions = entries["action"].reshape(H, B * N, -1).unbind(0)
         ret = torch.zeros(B * N, 1, device=obs.device)
+        # the model env's own reward, zero: one read-only tensor for every step (a transform that
+        # wrote into it in place would get an error, not corrupt the next step's)
+        no_reward = torch.zeros(1, 1, device=obs.device).expand(B * N, 1)
         for action, (nxt, sigma) in zip(actions, rollout):
-            reward = torch.zeros_like(ret)
+            reward = no_reward
             for t in stack:
                 reward = t.plan_reward(obs, action, nxt, sigma, reward)
-            ret += reward.reshape(ret.shape)
+            ret += reward if reward.shape == ret.shape else reward.reshape(ret.shape)
             obs = nxt
         return ret.reshape(B, N, 1, 1)
 

@@ -87,7 +87,8 @@ class PlanningTransform:
 
     def plan_reward(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor,
                     epistemic_std: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
-        """The reward ``(*B, 1)`` after this transform, given the one before it."""
+        """The reward ``(*B, 1)`` after this transform, given the one before it (a new tensor: the
+        arguments are read only, and the model env's own zero reward may be one expanded value)."""
         return reward
 
 
