@@ -346,3 +346,17 @@ def test_tensor_loop_matches_the_torchrl_stack():
     acts = torch.rand(2, 4, 3, 2) * 2 - 1
     torch.testing.assert_close(scaled.base_env.evaluate_action_sequences(obs_td, acts, num_particles=1, env=scaled),
                                rollout_returns(scaled, obs_td, acts))
+
+
+def test_candidates_are_the_clipped_samples_and_extras():
+    """``sample_candidates`` (one buffer, one pass each for the samples and the clipping) gives the
+    same values as adding, concatenating and clipping apart, the extras clipped too."""
+    planner = ICEMPlanner(TransformedEnv(_model_env("mean"), UncertaintyReward()), planning_horizon=4)
+    g = torch.Generator().manual_seed(0)
+    mean, std = torch.randn(3, 1, 4, 2, generator=g), torch.rand(3, 1, 4, 2, generator=g)
+    noise = torch.randn(3, 5, 2, 4, generator=g).transpose(-1, -2)  # strided, as colored noise comes
+    extra = (3 * torch.randn(3, 2, 4, 2, generator=g), mean)
+    got = planner.sample_candidates(mean, std, noise, extra)
+    want = torch.cat([mean + std * noise, *extra], 1).clamp(-1, 1)
+    assert got.shape == (3, 8, 4, 2) and torch.equal(got, want)
+    assert got.abs().max() == 1.0  # some were clipped

@@ -169,7 +169,6 @@ class ICEMPlanner(SequencePlannerBase):
             ti = time.perf_counter()
             n = max(int(self.num_candidates * self.population_decay ** (-i)), 2 * self.top_k)
             noise = colored_noise(self.noise_beta, (B, n, d, H), generator=self._generator).transpose(-1, -2)
-            samples = mean.unsqueeze(1) + std.unsqueeze(1) * noise
             extra = []
             if n_keep:
                 if i == 0 and prev_elites is not None:
@@ -178,9 +177,7 @@ class ICEMPlanner(SequencePlannerBase):
                     extra.append(elites[:, :n_keep])
             if i == self.optim_steps - 1:
                 extra.append(mean.unsqueeze(1))
-            if extra:
-                samples = torch.cat([samples, *extra], 1)
-            samples = self.clip(samples)
+            samples = self.sample_candidates(mean.unsqueeze(1), std.unsqueeze(1), noise, tuple(extra))
             returns = self.evaluate(obs_td, samples)  # (B, n')
             top_ret, top_idx = returns.topk(self.top_k, dim=1)  # sorted, best first
             elites = samples.gather(1, top_idx[..., None, None].expand(B, self.top_k, H, d))

@@ -102,7 +102,7 @@ class MPPIPlanner(SequencePlannerBase):
         best_ret = torch.full((B,), -math.inf, device=self.env_device)
         for _ in range(self.optim_steps):
             noise = colored_noise(self.noise_beta, (B, self.num_candidates, d, H), generator=self._generator)
-            samples = self.clip(mean.unsqueeze(1) + std * noise.transpose(-1, -2))
+            samples = self.sample_candidates(mean.unsqueeze(1), std, noise.transpose(-1, -2))
             returns = self.evaluate(obs_td, samples)  # (B, N), -inf where non-finite
             best_ret = torch.maximum(best_ret, returns.max(1).values)
             weights = torch.softmax(returns / self.temperature, dim=1)  # softmax subtracts the max
