@@ -18,8 +18,9 @@
  *     s'    = mu + sigma * eta                               (else s' = mu)
  * and, given the next step's network input, its state columns receive s' as the network takes it,
  * (s' - in_loc) / in_scale. Right after a network call every torch op touches cache-cold code and
- * data (on the AMX Xeon a 4-element add took 30 us there against 2 us in a loop); these are the
- * three ops and the concatenation a step would otherwise run between two network calls.
+ * data (on the AMX Xeon a 4-element add took 6-26 us there against 2 us in a loop:
+ * benchmarks/cold_ops.py); these are the three ops and the concatenation a step would otherwise run
+ * between two network calls.
  *
  * Why: done with torch ops this is about ten passes over (L, N, d_s) tensors (the bf16-to-fp32
  * copy, the member means, mean, centring, square, sum, the member gather), each a kernel launch;
