@@ -693,6 +693,15 @@ def test_deterministic_rollout_matches_the_torch_ops():
             list(first)
         third = model.deterministic_rollout(s0, model.normalized_actions(acts))
         assert third._layout in (first._layout, second._layout)
+        # a model in symlog space runs the torch ops (the moments kernel works in the state's units)
+        curved = EnsembleWorldModel(21, 4, num_cells=32, depth=2, symlog_observations=True)
+        curved.fit_normalizers(obs, torch.rand(700, 4, generator=g), obs + torch.randn(700, 21, generator=g))
+        curved.eval()
+        eta = 2 * torch.rand(H, M, 21, generator=g) - 1
+        r, got = rollout(s0, acts, eta, curved)
+        assert r._layout.compiled is None
+        for (s, sigma), (s_ref, sigma_ref) in zip(got, reference(s0, acts, eta, curved)):
+            assert torch.equal(s, s_ref) and torch.equal(sigma, sigma_ref)
         with pytest.raises(ValueError, match=r"eta has shape \(4, 37, 20\), expected \(4, 37, 21\)"):
             model.deterministic_rollout(s0, model.normalized_actions(acts), torch.zeros(H, M, 20))
         with pytest.raises(ValueError, match=r"observation has shape \(36, 21\), expected \(37, 21\)"):

@@ -38,7 +38,8 @@ from torchrl_softae.modules import silu_kernel as _silu_kernel
 from torchrl_softae.modules.paths import INFERENCE_PATHS
 from torchrl_softae.modules.precision import onednn_bf16_available, resolve_planning_dtype
 
-__all__ = ["DeterministicRollout", "EnsembleLinear", "Normalizer", "EnsembleWorldModel", "ensemble_std", "symlog", "symexp"]
+__all__ = ["DeterministicRollout", "EnsembleLinear", "Normalizer", "EnsembleWorldModel", "ensemble_std", "symlog",
+           "symexp"]
 
 
 def _conv_weight_packer():
@@ -894,7 +895,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         return layout
 
     def _moments_from_output(self, raw, obs, with_aleatoric=False, member_index=None, eta=None, next_input=None):
-        """:meth:`predict_moments` (and :meth:`rollout_step`'s ``eta`` and ``next_input``) from the
+        """:meth:`predict_moments` (and a deterministic rollout's ``eta`` and ``next_input``) from the
         raw network output ``raw`` ``(L, N, C)`` at the flat states ``obs`` ``(N, d_s)``; flat
         ``(N, d_s)`` results."""
         d = self.observation_dim
@@ -971,9 +972,9 @@ class DeterministicRollout:
     (:mod:`.moments_kernel`), a step is two compiled calls, prepared once per shape: right after a
     network call every torch op and line of Python runs on cache-cold code and data (on the AMX
     Xeon a 4-element add took 6-26 us there against 2 us in a loop, ``benchmarks/cold_ops.py``),
-    and a step of a one-particle arm plan spent about 400 us between its network calls before. Elsewhere each step runs
-    :meth:`EnsembleWorldModel.network_output` and the torch ops of the moments, with the same
-    values (``test_deterministic_rollout_matches_the_torch_ops``).
+    and a step of a one-particle arm plan spent about 400 us between its network calls before.
+    Elsewhere each step runs :meth:`EnsembleWorldModel.network_output` and the torch ops of the
+    moments, with the same values (``test_deterministic_rollout_matches_the_torch_ops``).
 
     Inference only (``torch.no_grad()``), in the model's ``planning_dtype``; the parameters must
     not change while it runs. Iterating yields ``(s', sigma)``, ``(M, d_s)`` each, step by step,
@@ -991,7 +992,8 @@ class DeterministicRollout:
         >>> model = EnsembleWorldModel(3, 1).eval()
         >>> acts = model.normalized_actions(torch.zeros(4, 2, 1))  # H = 4 steps of 2 candidates
         >>> with torch.no_grad():
-        ...     steps = [(s.clone(), sigma.clone()) for s, sigma in model.deterministic_rollout(torch.zeros(2, 3), acts)]
+        ...     rollout = model.deterministic_rollout(torch.zeros(2, 3), acts)
+        ...     steps = [(s.clone(), sigma.clone()) for s, sigma in rollout]
         >>> len(steps), steps[-1][0].shape  # (s', sigma) per step
         (4, torch.Size([2, 3]))
     """

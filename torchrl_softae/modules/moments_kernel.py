@@ -26,7 +26,8 @@ if _moments is not None and not _moments.supported():  # built, but this CPU lac
 #: members the kernel keeps in registers (``MAX_VECTOR_MEMBERS`` in moments.c); 0 without the kernel
 MAX_MEMBERS = 0 if _moments is None else _moments.MAX_MEMBERS
 
-__all__ = ["MAX_MEMBERS", "MAX_LOGVAR_SPAN", "available", "applies", "ensemble_moments", "prepare_moments", "isa", "supported_isas", "use_isa"]
+__all__ = ["MAX_MEMBERS", "MAX_LOGVAR_SPAN", "available", "applies", "ensemble_moments", "prepare_moments", "isa",
+           "supported_isas", "use_isa"]
 
 _DTYPE_CODES = {torch.float32: 0, torch.bfloat16: 1}
 
