@@ -1,5 +1,6 @@
 import copy
 import pickle
+import threading
 import warnings
 
 import pytest
@@ -693,6 +694,24 @@ def test_deterministic_rollout_matches_the_torch_ops():
             list(first)
         third = model.deterministic_rollout(s0, model.normalized_actions(acts))
         assert third._layout in (first._layout, second._layout)
+        # rollouts of one shape from two threads at once (the kernels release the GIL): each its
+        # own buffers while it runs, the same results as one after another
+        jobs = [(torch.randn(M, 21, generator=g), torch.rand(H, M, 4, generator=g) * 2 - 1) for _ in range(2)]
+        want = [reference(s_, a_, None) for s_, a_ in jobs]
+        results = {}
+
+        def run(i):
+            with torch.no_grad():
+                results[i] = [rollout(*jobs[i], None)[1] for _ in range(5)]
+
+        threads = [threading.Thread(target=run, args=(i,)) for i in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        for i in range(2):
+            for got in results[i]:
+                assert all(torch.equal(a[0], b[0]) for a, b in zip(got, want[i]))
         # a model in symlog space runs the torch ops (the moments kernel works in the state's units)
         curved = EnsembleWorldModel(21, 4, num_cells=32, depth=2, symlog_observations=True)
         curved.fit_normalizers(obs, torch.rand(700, 4, generator=g), obs + torch.randn(700, 21, generator=g))

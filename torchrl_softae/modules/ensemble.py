@@ -19,6 +19,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import threading
 import weakref
 from collections.abc import Sequence
 from types import SimpleNamespace
@@ -867,10 +868,11 @@ class EnsembleWorldModel(TensorDictModuleBase):
         if compiled:
             packed = self._packed_network(path, dtype, cols)
         key = ("rollout", steps, rows, with_eta, dtype, path, torch.get_num_threads(), str(device))
-        hit = self._inference_cache.get(key)
-        if hit is not None and hit.packed is packed and hit.owner is None:
-            hit.owner = owner
-            return hit
+        with _ROLLOUT_LOCK:  # taken by one rollout: the check and the taking in one step
+            hit = self._inference_cache.get(key)
+            if hit is not None and hit.packed is packed and hit.owner is None:
+                hit.owner = owner
+                return hit
         layout = SimpleNamespace(
             owner=owner, packed=packed, inputs=torch.empty(steps, rows, d + d_a, device=device),
             observation=torch.empty(rows, d, device=device),
@@ -890,8 +892,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
                     eta=None if eta is None else eta[h], next_input=inputs[h + 1] if h + 1 < steps else None,
                     input_loc=in_loc, input_scale=in_scale, out=(states[h], sigmas[h]))
                 layout.compiled.append((network, moments, (states[h], sigmas[h])))
-        if hit is None or hit.owner is None:  # a rollout still running keeps its own
-            self._inference_cache[key] = layout
+        with _ROLLOUT_LOCK:
+            hit = self._inference_cache.get(key)
+            if hit is None or hit.owner is None:  # a rollout still running keeps its own
+                self._inference_cache[key] = layout
         return layout
 
     def _moments_from_output(self, raw, obs, with_aleatoric=False, member_index=None, eta=None, next_input=None):
@@ -956,8 +960,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
         return tensordict
 
 
-#: tokens of DeterministicRollout objects (which one holds a layout of buffers)
+#: tokens of DeterministicRollout objects (which one holds a layout of buffers), and the lock under
+#: which a rollout takes or frees a layout
 _ROLLOUT_TOKENS = itertools.count()
+_ROLLOUT_LOCK = threading.Lock()
 
 
 class DeterministicRollout:
@@ -1047,8 +1053,9 @@ class DeterministicRollout:
             self._release()
 
     def _release(self) -> None:
-        if self._layout.owner == self._token:
-            self._layout.owner = None
+        with _ROLLOUT_LOCK:
+            if self._layout.owner == self._token:
+                self._layout.owner = None
 
     def __del__(self):  # dropped without running: its buffers are free for the next rollout
         if hasattr(self, "_layout"):
