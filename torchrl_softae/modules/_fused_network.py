@@ -105,11 +105,12 @@ def prepare(kernel: Callable, network: PackedNetworkBase, x: torch.Tensor, out_f
     elif tuple(out.shape) != shape or out.dtype != torch.float32 or not out.is_contiguous() or out.device.type != "cpu":
         raise ValueError(f"{network.kernel}.forward: out {tuple(out.shape)} {out.dtype}, expected {shape} contiguous "
                          "float32 on the CPU")
+    # the threads: as many as torch's at preparation
     arguments = (x.data_ptr(), x.shape[0], x.shape[1], out.data_ptr(), out_features, network.members,
                  *network._arguments, torch.get_num_threads())
     name = f"torchrl_softae::{network.kernel}"
 
-    def call() -> None:
+    def call(alive=(x, out, network)) -> None:  # kept alive with the call: it reads their addresses
         with seen_by_profiler(name):
             kernel(*arguments)
 
