@@ -116,14 +116,17 @@ def forward(x: torch.Tensor, network: PackedNetwork, out_features: int) -> torch
     Returns ``(L, N, C)`` fp32: matmuls in bf16 with fp32 accumulation, hidden activations rounded
     to bf16 (computed to 1e-4 relative before rounding); the output is not rounded.
     """
-    if not available():
-        raise RuntimeError(f"amx_network.forward: not available here ({why_not()})")
-    return run(_amx_network.forward, network, x, out_features)
+    return run(_entry(), network, x, out_features)
 
 
 def prepare_forward(x: torch.Tensor, network: PackedNetwork, out_features: int, out: torch.Tensor | None = None):
     """:func:`forward` on the fixed buffers ``x`` and ``out``, prepared once
     (:func:`~._fused_network.prepare`): returns the call and its output."""
+    return prepare(_entry(), network, x, out_features, out)
+
+
+def _entry():
+    """The kernel's entry, where it runs."""
     if not available():
         raise RuntimeError(f"amx_network.forward: not available here ({why_not()})")
-    return prepare(_amx_network.forward, network, x, out_features, out)
+    return _amx_network.forward

@@ -718,11 +718,15 @@ class EnsembleWorldModel(TensorDictModuleBase):
                       action_normalized: bool = False) -> torch.Tensor:
         """The network's input ``(..., d_s + d_a)`` at ``(s, a)``: states in the model's space and
         actions, normalized column by column (the actions already, with ``action_normalized``)."""
-        d = self.observation_dim
-        norm = self.input_normalizer
         if not action_normalized:
             action = self.normalized_actions(action)
-        return torch.cat([(self._to_model_space(observation) - norm.loc[:d]) / norm.scale[:d], action], -1)
+        return torch.cat([self._normalized_states(observation), action], -1)
+
+    def _normalized_states(self, observation: torch.Tensor) -> torch.Tensor:
+        """States ``(..., d_s)`` as the network takes them (its input's state columns)."""
+        d = self.observation_dim
+        norm = self.input_normalizer
+        return (self._to_model_space(observation) - norm.loc[:d]) / norm.scale[:d]
 
     def normalized_actions(self, action: torch.Tensor) -> torch.Tensor:
         """Actions ``(..., d_a)`` as the network takes them (its input's action columns, normalized).
@@ -935,7 +939,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         if eta is not None:
             mu = torch.addcmul(mu, sigma, eta)
         if next_input is not None:
-            next_input[:, :d] = (self._to_model_space(mu) - norm.loc[:d]) / norm.scale[:d]
+            next_input[:, :d] = self._normalized_states(mu)
         return mu, sigma, member_mean, ale
 
     def predict(
