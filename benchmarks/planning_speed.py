@@ -33,9 +33,10 @@ heavy.
   ...@torch-moments (--compare-moments) the four icem rows with mu and sigma computed by torch ops
                     (EnsembleWorldModel.fused_moments = False) instead of the one-pass kernel
   ...@torch-randn   (--compare-noise) the four icem rows with every normal draw by torch.randn
-  ...@step-loop     (--compare-rollout) the two one-particle icem rows scored by the per-step tensor loop
-                    (EnsembleModelEnv.deterministic_rollouts = False) instead of the model's
-                    deterministic rollout (prepared kernel calls)
+  ...@step-loop     (--compare-rollout) the four icem rows scored by the per-step tensor loop
+                    (EnsembleModelEnv.deterministic_rollouts / sampled_rollouts = False) instead of
+                    the model's deterministic (one particle) or sampled (ten) rollout, prepared
+                    kernel calls
                     (normal_kernel.enabled = False) instead of the counter-based kernel
 
 ``--layer-costs`` also times the arm-sized network as the planner runs it, fp32 and bf16 (its
@@ -515,33 +516,40 @@ def flops_per_action(model, rows, H, iters, first_rows=None, with_logvar=True):
 
 class RecordNetworkCalls:
     """Records the input shape and ``with_logvar`` of every network call inside the block: every
-    ``model.network_output`` call, and a deterministic rollout's steps where they run as prepared
-    kernel calls, without it (``EnsembleWorldModel.deterministic_rollout``: one call of ``(M, d_s
-    + d_a)`` rows per step, mean head only). The instance's methods are wrapped for the block's
-    duration, then the class's are back."""
+    ``model.network_output`` call, and the steps of a planning rollout where they run as prepared
+    kernel calls, without it (``EnsembleWorldModel.deterministic_rollout`` and ``sampled_rollout``:
+    their ``network_calls``). The instance's methods are wrapped for the block's duration, then the
+    class's are back."""
+
+    ROLLOUTS = ("deterministic_rollout", "sampled_rollout")
 
     def __init__(self, model):
         self.model, self.calls = model, []
 
     def __enter__(self):
-        network_output, rollout = self.model.network_output, self.model.deterministic_rollout
+        network_output = self.model.network_output
 
         def recorded(x, with_logvar=True):
             self.calls.append((tuple(x.shape), with_logvar))
             return network_output(x, with_logvar)
 
-        def recorded_rollout(observation, normalized_actions, eta=None):
-            steps = rollout(observation, normalized_actions, eta)
-            if steps._layout.compiled is not None:  # else its steps call network_output
-                H, M, d_a = normalized_actions.shape
-                self.calls += [((M, observation.shape[-1] + d_a), False)] * H
-            return steps
+        def recording(make_rollout):
+            def recorded_rollout(*args, **kwargs):
+                steps = make_rollout(*args, **kwargs)
+                if steps.compiled:  # else its steps call network_output
+                    self.calls += steps.network_calls
+                return steps
+            return recorded_rollout
 
-        self.model.network_output, self.model.deterministic_rollout = recorded, recorded_rollout
+        self.model.network_output = recorded
+        for name in self.ROLLOUTS:
+            setattr(self.model, name, recording(getattr(self.model, name)))
         return self
 
     def __exit__(self, *exc):
-        del self.model.network_output, self.model.deterministic_rollout
+        del self.model.network_output
+        for name in self.ROLLOUTS:
+            delattr(self.model, name)
 
     def flops(self) -> int:
         """The ensemble FLOPs of the recorded calls (rows x every member's matmuls, the
@@ -643,8 +651,8 @@ def main():
     p.add_argument("--compare-moments", action="store_true",
                    help="also time the icem rows with mu and sigma by torch ops instead of the one-pass kernel")
     p.add_argument("--compare-rollout", action="store_true",
-                   help="also time the one-particle icem rows scored by the per-step tensor loop instead of the "
-                        "model's deterministic rollout")
+                   help="also time the icem rows scored by the per-step tensor loop instead of the model's "
+                        "deterministic (one particle) or sampled (ten) rollout")
     p.add_argument("--layer-costs", action="store_true",
                    help="also time one hidden layer's GEMM, SiLU and fused GEMM + SiLU at the planner's row counts")
     p.add_argument("--network-alone", action="store_true",
@@ -727,18 +735,18 @@ def main():
                 planners[f"{key}@torch-randn"] = icem_contender(key, sample_env, opt_env, icem)
                 torch_randn.add(f"{key}@torch-randn")
 
-        step_loop = set()  # one-particle contenders scored by the per-step loop (the rollout's baseline)
+        step_loop = set()  # contenders scored by the per-step loop (the rollouts' baseline)
         if args.compare_rollout:
             for key in icem_rows:
-                if "dedup" in key:
-                    planners[f"{key}@step-loop"] = icem_contender(key, sample_env, opt_env, icem)
-                    step_loop.add(f"{key}@step-loop")
+                planners[f"{key}@step-loop"] = icem_contender(key, sample_env, opt_env, icem)
+                step_loop.add(f"{key}@step-loop")
 
         def configure(key):  # the model as this contender runs it
             model.inference_path = path_of.get(key, "auto")
             model.fused_moments = key not in torch_moments
             normal_kernel.enabled = kernel_noise and key not in torch_randn
             opt_env.base_env.deterministic_rollouts = key not in step_loop
+            sample_env.base_env.sampled_rollouts = key not in step_loop
 
         alone = {}  # contender -> its plan's network calls, replayed alone (--network-alone)
         with torch.no_grad(), warnings.catch_warnings():
@@ -781,7 +789,7 @@ def main():
                         times[f"{key}:network"].append(time.perf_counter() - t)
                 pk = peaks(repeats=2, so_far=pk, precisions=precisions)  # between rounds, so a noisy moment cannot set the peak
         model.inference_path, model.fused_moments, normal_kernel.enabled = "auto", True, kernel_noise
-        opt_env.base_env.deterministic_rollouts = True
+        opt_env.base_env.deterministic_rollouts = sample_env.base_env.sampled_rollouts = True
         chosen = sorted({f"{'bf16' if k[0] == torch.bfloat16 else 'fp32'} rows<={k[1]}: {v}"
                          for k, v in model._path_memo.items() if isinstance(v, str)})
         timed.append((name, d_s, d_a, H, model, sample_env, planners, times, chosen, alone))

@@ -104,9 +104,10 @@ def test_heldout_extrapolation_splits_the_runs_own_metric(tmp_path):
 
 
 def test_network_calls_are_recorded_on_every_inference_path():
-    """``--network-alone`` replays what ``RecordNetworkCalls`` saw: a deterministic plan's network
-    calls are the same record whether they run through ``network_output`` (a torch path) or as a
-    rollout's prepared kernel calls (a whole-network kernel, which bypasses it)."""
+    """``--network-alone`` replays what ``RecordNetworkCalls`` saw: a plan's network calls are the
+    same record whether they run through ``network_output`` (a torch path) or as a rollout's
+    prepared kernel calls (a whole-network kernel, which bypasses it), for a deterministic plan and
+    a trajectory-sampling one with particles."""
     import torch
     from tensordict import TensorDict
 
@@ -114,16 +115,20 @@ def test_network_calls_are_recorded_on_every_inference_path():
     import planning_speed
 
     model = planning_speed.make_model(5, 2)
-    env = planning_speed.softae_env(model)
+    envs = {"softae": (planning_speed.softae_env(model), 1), "pets": (planning_speed.pets_env(model), 10)}
     state = TensorDict({"observation": torch.randn(1, 5)}, [1])
-    actions = torch.rand(1, 6, 3, 7) * 2 - 1  # 6 candidates, H = 3, d_a + d_s = 7
+    actions = torch.rand(1, 6, 3, 7) * 2 - 1  # 6 candidates, H = 3, d_a + d_s = 7 (SoftAE's eta too)
     records = {}
-    for path in ("bmm", "fma-network"):
-        if path in model.available_inference_paths(torch.float32):
-            model.inference_path = path
-            with planning_speed.RecordNetworkCalls(model) as record:
-                env.base_env.evaluate_action_sequences(state, actions, num_particles=1, env=env)
-            records[path] = record.calls
+    for kind, (env, particles) in envs.items():
+        for path in ("bmm", "fma-network"):
+            if path in model.available_inference_paths(torch.float32):
+                model.inference_path = path
+                with planning_speed.RecordNetworkCalls(model) as record:
+                    env.base_env.evaluate_action_sequences(state, actions[..., :env.action_spec.shape[-1]],
+                                                           num_particles=particles, env=env)
+                records[kind, path] = record.calls
     model.inference_path = "auto"
-    assert records["bmm"] == [((6, 7), False)] * 3
-    assert all(calls == records["bmm"] for calls in records.values()), records
+    assert records["softae", "bmm"] == [((6, 7), False)] * 3
+    # the first step once for a candidate's particles, with the log-variance head for the noise
+    assert records["pets", "bmm"] == [((6, 7), True)] + [((60, 7), True)] * 2
+    assert all(calls == records[kind, "bmm"] for (kind, _), calls in records.items()), records

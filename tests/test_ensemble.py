@@ -727,6 +727,98 @@ def test_deterministic_rollout_matches_the_torch_ops():
             model.deterministic_rollout(s0[1:], model.normalized_actions(acts))
 
 
+@pytest.mark.skipif(not moments_kernel.available(), reason="the moments kernel was not built or this CPU lacks AVX2")
+@pytest.mark.parametrize("isa", ["avx512", "avx2"])
+def test_moments_kernel_shares_rows_between_particles_and_samples_the_member(isa):
+    """With ``particles`` each source row serves that many output rows (a candidate's particles at
+    the first step), and with ``noise`` the first output is the member's mean plus its aleatoric
+    std times the noise: the torch ops on the repeated rows, to fp32 rounding."""
+    if isa not in moments_kernel.supported_isas():
+        pytest.skip(f"this CPU does not run the {isa} variant")
+    g = torch.Generator().manual_seed(0)
+    L, sources, P, d = 5, 7, 3, 19  # 19: a masked tail in both variants
+    raw = torch.randn(L, sources, 2 * d, generator=g)
+    state, loc, scale = torch.randn(sources, d, generator=g), torch.randn(d, generator=g), torch.rand(d, generator=g) + 0.5
+    member = torch.randint(L, (sources * P,), generator=g)
+    noise = torch.randn(sources * P, d, generator=g)
+    lo, hi = torch.full((d,), -6.0), torch.full((d,), 1.0)
+    best = moments_kernel.isa()
+    moments_kernel.use_isa(isa)
+    try:
+        mu, sigma, picked, ale = moments_kernel.ensemble_moments(
+            raw.repeat_interleave(P, 1), state.repeat_interleave(P, 0), loc, scale, d, member, True, (lo, hi))
+        nxt, sigma_shared, none1, none2 = moments_kernel.ensemble_moments(
+            raw, state, loc, scale, d, member, True, (lo, hi), noise=noise, particles=P)
+        mean_only, _, _, _ = moments_kernel.ensemble_moments(raw, state, loc, scale, d, member, noise=noise,
+                                                              particles=P)
+    finally:
+        moments_kernel.use_isa(best)
+    assert none1 is None and none2 is None  # with noise the member's mean and std are not kept
+    torch.testing.assert_close(sigma_shared, sigma, rtol=0, atol=0)
+    torch.testing.assert_close(nxt, picked + ale * noise)
+    torch.testing.assert_close(mean_only, picked, rtol=0, atol=0)  # no log-variance head: s' = m_l
+    with pytest.raises(ValueError, match="noise needs member_index"):
+        moments_kernel.ensemble_moments(raw, state, loc, scale, d, noise=noise, particles=P)
+    with pytest.raises(ValueError, match="noise needs member_index"):
+        moments_kernel.ensemble_moments(raw, state, loc, scale, d, member, True, noise=noise, particles=P)
+    with pytest.raises(ValueError, match=r"noise has shape \(7, 19\), expected \(21, 19\)"):
+        moments_kernel.ensemble_moments(raw, state, loc, scale, d, member, noise=noise[:7], particles=P)
+
+
+@pytest.mark.skipif(not moments_kernel.available(), reason="the moments kernel was not built or this CPU lacks AVX2")
+def test_sampled_rollout_matches_the_torch_ops():
+    """A trajectory-sampling rollout (PETS-AE, each particle on its member, with and without the
+    aleatoric noise) as prepared kernel calls on each whole-network kernel that runs here in each
+    dtype, and as torch ops on a torch path: step by step what predict_moments on every particle's
+    rows and addcmul with the same noise give (the network once for a candidate's particles at the
+    first step); the noise is the generator's, one draw per step; a second rollout of the shape
+    reuses the layout."""
+    from torchrl_softae.modules import normal_kernel
+
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(1)
+    model = EnsembleWorldModel(21, 4, num_cells=64, depth=2)
+    obs = torch.randn(700, 21, generator=g) * 3
+    model.fit_normalizers(obs, torch.rand(700, 4, generator=g), obs + torch.randn(700, 21, generator=g))
+    model.eval()
+    whole = ("amx-network", "fma-network")
+    cases = [(dtype, path) for dtype in (None, torch.bfloat16) for path in (*whole, "bmm")
+             if path in model.available_inference_paths(dtype or torch.float32)]
+    H, M, P = 4, 13, 10
+
+    def reference(s, acts, members, seed, with_noise):
+        gen, out = torch.Generator().manual_seed(seed), []
+        s, members = s.repeat_interleave(P, 0), members.reshape(-1)
+        for h in range(H):
+            _, sigma, picked, ale = model.predict_moments(s, acts[h].repeat_interleave(P, 0), with_noise, members)
+            s = picked if not with_noise else picked + ale * normal_kernel.randn(picked.shape, gen)
+            out.append((s, sigma))
+        return out
+
+    with torch.no_grad():
+        for dtype, path in cases:
+            model.planning_dtype, model.inference_path = dtype, path
+            for with_noise in (False, True):
+                layouts = []
+                for attempt in range(2):
+                    s0, acts = torch.randn(M, 21, generator=g) * 2, torch.rand(H, M, 4, generator=g) * 2 - 1
+                    members = (torch.arange(P) + torch.randint(5, (M, 1), generator=g)) % 5
+                    r = model.sampled_rollout(s0, model.normalized_actions(acts), members, with_noise,
+                                              torch.Generator().manual_seed(attempt))
+                    assert len(r) == H and r.compiled == (path in whole), (dtype, path)
+                    assert r.network_calls == [((M, 25), with_noise)] + [((M * P, 25), with_noise)] * (H - 1)
+                    layouts.append(r._layout)
+                    got = [(nxt.clone(), sigma.clone()) for nxt, sigma in r]
+                    for (s, sigma), (s_ref, sigma_ref) in zip(got, reference(s0, acts, members, attempt, with_noise)):
+                        torch.testing.assert_close(s, s_ref)
+                        torch.testing.assert_close(sigma, sigma_ref)
+                assert layouts[0] is layouts[1]
+        with pytest.raises(ValueError, match=r"member_index is \(12, 10\) torch.int64, expected \(13, P\)"):
+            model.sampled_rollout(s0, model.normalized_actions(acts), members[1:])
+        with pytest.raises(ValueError, match=r"member_index outside \[0, 5\)"):
+            model.sampled_rollout(s0, model.normalized_actions(acts), members + 1)
+
+
 @pytest.mark.skipif(not (silu_kernel.available() and moments_kernel.available()),
                     reason="the compiled kernels were not built here (no compiler or no AVX2)")
 def test_compiled_kernels_show_in_torch_profiler_tables():

@@ -310,6 +310,8 @@ def test_tensor_loop_matches_the_torchrl_stack():
         obs = torch.randn(2, 1, 1, 3).expand(2, 5, particles, 3)
         acts = (torch.rand(2, 5, 1, 4, d) * 2 - 1).expand(2, 5, particles, 4, d)
         member = torch.arange(particles).expand(2, 5, particles) % 5 if particles > 1 else None
+        # the per-step loop first: every network call goes through network_output
+        base.deterministic_rollouts = base.sampled_rollouts = False
         rows, network = [], base.world_model.network_output
         base.world_model.network_output = lambda x, *a, **k: (rows.append(x.shape[0]), network(x, *a, **k))[1]
         base.set_seed(0)
@@ -319,27 +321,32 @@ def test_tensor_loop_matches_the_torchrl_stack():
         slow = base._returns_through_step(tenv, obs, acts, member)
         del base.world_model.network_output
         torch.testing.assert_close(fast, slow)
-        # the deterministic rollout as prepared kernel calls on a whole-network path (the network
-        # is then called without network_output), and the per-step loop it replaces: the same
-        # returns as stepping
-        if base.deterministic and particles == 1:
-            base.deterministic_rollouts = False
-            base.set_seed(0)
-            torch.testing.assert_close(base._returns_on_tensors(base._tensor_stack(tenv), obs, acts[:, :, 0], member),
-                                       slow)
-            base.deterministic_rollouts = True
-            for path in ("amx-network", "fma-network"):
-                for precision in ("fp32", "bf16"):
-                    if path not in base.world_model.available_inference_paths(resolve_planning_dtype(precision) or torch.float32):
-                        continue
-                    base.world_model.inference_path = path
-                    with base._planning(precision), torch.no_grad():
-                        fast = base._returns_on_tensors(base._tensor_stack(tenv), obs, acts[:, :, 0], member)
-                        assert any(k[0] == "rollout" and k[5] == path and v.compiled
-                                   for k, v in base.world_model._inference_cache.items())
-                        slow = base._returns_through_step(tenv, obs, acts, member)
-                    base.world_model.inference_path = "auto"
-                    torch.testing.assert_close(fast, slow)
+        base.deterministic_rollouts = base.sampled_rollouts = True
+        # the rollouts (deterministic with one particle, trajectory sampling with several), as
+        # prepared kernel calls on a whole-network path and as torch ops elsewhere: the same returns
+        # as stepping, noise draws included
+        kind = ("rollout" if base.deterministic and particles == 1 else
+                "sampled rollout" if base.mode == "sample" and particles > 1 else None)
+        if kind is None:
+            continue
+        base.set_seed(0)
+        torch.testing.assert_close(base._returns_on_tensors(base._tensor_stack(tenv), obs, acts[:, :, 0], member),
+                                   slow)
+        for path in ("amx-network", "fma-network", "bmm"):
+            for precision in ("fp32", "bf16"):
+                if path not in base.world_model.available_inference_paths(resolve_planning_dtype(precision) or torch.float32):
+                    continue
+                base.world_model.inference_path = path
+                with base._planning(precision), torch.no_grad():
+                    base.set_seed(0)
+                    fast = base._returns_on_tensors(base._tensor_stack(tenv), obs, acts[:, :, 0], member)
+                    compiled = [v.compiled is not None for k, v in base.world_model._inference_cache.items()
+                                if k[0] == kind and path in (k[-4] or ())]  # k[-4]: the kernel paths
+                    assert path == "bmm" or (compiled and all(compiled))
+                    base.set_seed(0)
+                    slow = base._returns_through_step(tenv, obs, acts, member)
+                base.world_model.inference_path = "auto"
+                torch.testing.assert_close(fast, slow)
     scaled = TransformedEnv(_model_env("mean"), Compose(UncertaintyReward(), RewardScaling(0.0, 2.0)))
     assert scaled.base_env._tensor_stack(scaled) is None
     obs_td = TensorDict({"observation": torch.randn(2, 3)}, [2])

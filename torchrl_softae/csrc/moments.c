@@ -17,7 +17,12 @@
  * (beta already applied), the mean output is SoftAE's optimistic next state
  *     s'    = mu + sigma * eta                               (else s' = mu)
  * and, given the next step's network input, its state columns receive s' as the network takes it,
- * (s' - in_loc) / in_scale. Right after a network call every torch op touches cache-cold code and
+ * (s' - in_loc) / in_scale. A trajectory-sampling step (PETS) finishes the same way: given standard
+ * normal draws z and a member per row, the first output is that member's sampled next state
+ *     s'    = m_l + std * z                                  (m_l without the log-variance head)
+ * instead of mu. At a plan's first step a candidate's particles share its state and action: with
+ * `share` = P, output row n reads row n / P of the network output and of the state, so the network
+ * ran once for them. Right after a network call every torch op touches cache-cold code and
  * data (on the AMX Xeon a 4-element add took 6-26 us there against 2 us in a loop:
  * benchmarks/cold_ops.py); these are the three ops and the concatenation a step would otherwise run
  * between two network calls.
@@ -54,15 +59,17 @@ typedef struct {
     int dtype;                /* DTYPE_FLOAT32 or DTYPE_BFLOAT16 */
     int64_t L, d;             /* members, state dimensions */
     int64_t logvar_offset;    /* column of the log-variance head (d), or -1 without it */
-    const float *state;       /* (N, d) contiguous, the model-space state s */
+    int64_t share;            /* output rows per network-output and state row (a candidate's particles) */
+    const float *state;       /* (N / share, d) contiguous, the model-space state s */
     const float *loc, *scale; /* (d,) output normalizer */
     const int64_t *member;    /* (N,) member per row, or NULL */
     float *mu, *sigma;        /* (N, d) outputs */
-    float *picked, *picked_logvar; /* (N, d) outputs with member (picked_logvar only with the head) */
+    float *picked, *picked_logvar; /* (N, d) outputs with member, or NULL (picked_logvar only with the head) */
     /* (d,) each, or NULL: picked_logvar receives the aleatoric std, std_scale = scale * exp(lo / 2),
      * span = exp(hi - lo) */
     const float *hi, *std_scale, *span;
     const float *eta;           /* (N, d) contiguous, or NULL: mu receives mu + sigma * eta */
+    const float *noise;         /* (N, d) contiguous, or NULL; with member: mu receives m_l + std * z */
     float *next_input;          /* row n's state columns at next_input + n * next_stride, or NULL */
     int64_t next_stride;
     const float *in_loc, *in_scale; /* (d,) the input normalizer's state columns (with next_input) */
@@ -84,12 +91,12 @@ __attribute__((target("avx512f,avx512bw,avx512vl"))) static inline __m512 load_a
 }
 
 __attribute__((target("avx512f,avx512bw,avx512vl"))) static void moments_row_avx512(const moments_args *a, int64_t n) {
-    const int64_t L = a->L, d = a->d, row = n * a->sn;
+    const int64_t L = a->L, d = a->d, src = n / a->share, row = src * a->sn;
     const __m512 inv_l = _mm512_set1_ps(1.0f / (float)L), inv_dof = _mm512_set1_ps(1.0f / (float)(L > 1 ? L - 1 : 1));
     __m512 m[MAX_VECTOR_MEMBERS];
     for (int64_t j = 0; j < d; j += 16) {
         const __mmask16 k = d - j >= 16 ? (__mmask16)0xffff : (__mmask16)((1u << (d - j)) - 1u);
-        const __m512 base = _mm512_add_ps(_mm512_maskz_loadu_ps(k, a->state + n * d + j), _mm512_maskz_loadu_ps(k, a->loc + j));
+        const __m512 base = _mm512_add_ps(_mm512_maskz_loadu_ps(k, a->state + src * d + j), _mm512_maskz_loadu_ps(k, a->loc + j));
         const __m512 sc = _mm512_maskz_loadu_ps(k, a->scale + j);
         __m512 sum = _mm512_setzero_ps(), ss = _mm512_setzero_ps();
         for (int64_t l = 0; l < L; l++) {
@@ -104,26 +111,31 @@ __attribute__((target("avx512f,avx512bw,avx512vl"))) static void moments_row_avx
         const __m512 sd = _mm512_sqrt_ps(_mm512_mul_ps(ss, inv_dof));
         __m512 next = mean;
         if (a->eta != NULL) next = _mm512_add_ps(mean, _mm512_mul_ps(sd, _mm512_maskz_loadu_ps(k, a->eta + n * d + j)));
-        _mm512_mask_storeu_ps(a->mu + n * d + j, k, next);
-        _mm512_mask_storeu_ps(a->sigma + n * d + j, k, sd);
-        if (a->next_input != NULL)
-            _mm512_mask_storeu_ps(a->next_input + n * a->next_stride + j, k,
-                                  _mm512_div_ps(_mm512_sub_ps(next, _mm512_maskz_loadu_ps(k, a->in_loc + j)),
-                                                _mm512_maskz_loadu_ps(k, a->in_scale + j)));
         if (a->member != NULL) {
             const int64_t l = a->member[n];
-            _mm512_mask_storeu_ps(a->picked + n * d + j, k, m[l]);
+            if (a->picked != NULL) _mm512_mask_storeu_ps(a->picked + n * d + j, k, m[l]);
+            __m512 x = _mm512_setzero_ps();
             if (a->logvar_offset >= 0) {
-                __m512 x = load_avx512(a, l * a->sm + row + a->logvar_offset + j, k);
+                x = load_avx512(a, l * a->sm + row + a->logvar_offset + j, k);
                 if (a->hi != NULL) {
                     const __m512 one = _mm512_set1_ps(1.0f);
                     __m512 e = exp_avx512(_mm512_sub_ps(_mm512_maskz_loadu_ps(k, a->hi + j), x));
                     __m512 q = _mm512_div_ps(_mm512_maskz_loadu_ps(k, a->span + j), _mm512_add_ps(one, e));
                     x = _mm512_mul_ps(_mm512_maskz_loadu_ps(k, a->std_scale + j), _mm512_sqrt_ps(_mm512_add_ps(one, q)));
                 }
-                _mm512_mask_storeu_ps(a->picked_logvar + n * d + j, k, x);
+                if (a->picked_logvar != NULL) _mm512_mask_storeu_ps(a->picked_logvar + n * d + j, k, x);
             }
+            if (a->noise != NULL)
+                next = a->logvar_offset >= 0
+                           ? _mm512_add_ps(m[l], _mm512_mul_ps(x, _mm512_maskz_loadu_ps(k, a->noise + n * d + j)))
+                           : m[l];
         }
+        _mm512_mask_storeu_ps(a->mu + n * d + j, k, next);
+        _mm512_mask_storeu_ps(a->sigma + n * d + j, k, sd);
+        if (a->next_input != NULL)
+            _mm512_mask_storeu_ps(a->next_input + n * a->next_stride + j, k,
+                                  _mm512_div_ps(_mm512_sub_ps(next, _mm512_maskz_loadu_ps(k, a->in_loc + j)),
+                                                _mm512_maskz_loadu_ps(k, a->in_scale + j)));
     }
 }
 
@@ -162,13 +174,13 @@ __attribute__((target("avx2,fma"))) static __m256 aleatoric_std_avx2(const momen
 }
 
 __attribute__((target("avx2"))) static void moments_row_avx2(const moments_args *a, int64_t n) {
-    const int64_t L = a->L, d = a->d, row = n * a->sn;
+    const int64_t L = a->L, d = a->d, src = n / a->share, row = src * a->sn;
     const __m256 inv_l = _mm256_set1_ps(1.0f / (float)L), inv_dof = _mm256_set1_ps(1.0f / (float)(L > 1 ? L - 1 : 1));
     __m256 m[MAX_VECTOR_MEMBERS];
     for (int64_t j = 0; j < d; j += 8) {
         const int64_t count = d - j >= 8 ? 8 : d - j;
         const __m256i k = tail_mask_avx2(count);
-        const __m256 base = _mm256_add_ps(_mm256_maskload_ps(a->state + n * d + j, k), _mm256_maskload_ps(a->loc + j, k));
+        const __m256 base = _mm256_add_ps(_mm256_maskload_ps(a->state + src * d + j, k), _mm256_maskload_ps(a->loc + j, k));
         const __m256 sc = _mm256_maskload_ps(a->scale + j, k);
         __m256 sum = _mm256_setzero_ps(), ss = _mm256_setzero_ps();
         for (int64_t l = 0; l < L; l++) {
@@ -183,6 +195,20 @@ __attribute__((target("avx2"))) static void moments_row_avx2(const moments_args 
         const __m256 sd = _mm256_sqrt_ps(_mm256_mul_ps(ss, inv_dof));
         __m256 next = mean;
         if (a->eta != NULL) next = _mm256_add_ps(mean, _mm256_mul_ps(sd, _mm256_maskload_ps(a->eta + n * d + j, k)));
+        if (a->member != NULL) {
+            const int64_t l = a->member[n];
+            if (a->picked != NULL) _mm256_maskstore_ps(a->picked + n * d + j, k, m[l]);
+            __m256 x = _mm256_setzero_ps();
+            if (a->logvar_offset >= 0) {
+                x = load_avx2(a, l * a->sm + row + a->logvar_offset + j, count, k);
+                if (a->hi != NULL) x = aleatoric_std_avx2(a, j, k, x);
+                if (a->picked_logvar != NULL) _mm256_maskstore_ps(a->picked_logvar + n * d + j, k, x);
+            }
+            if (a->noise != NULL)
+                next = a->logvar_offset >= 0
+                           ? _mm256_add_ps(m[l], _mm256_mul_ps(x, _mm256_maskload_ps(a->noise + n * d + j, k)))
+                           : m[l];
+        }
         _mm256_maskstore_ps(a->mu + n * d + j, k, next);
         _mm256_maskstore_ps(a->sigma + n * d + j, k, sd);
         if (a->next_input != NULL) {
@@ -190,15 +216,6 @@ __attribute__((target("avx2"))) static void moments_row_avx2(const moments_args 
             const __m256 v = _mm256_div_ps(_mm256_sub_ps(next, _mm256_maskload_ps(a->in_loc + j, k)),
                                            _mm256_maskload_ps(a->in_scale + j, k));
             _mm256_maskstore_ps(a->next_input + n * a->next_stride + j, k, v);
-        }
-        if (a->member != NULL) {
-            const int64_t l = a->member[n];
-            _mm256_maskstore_ps(a->picked + n * d + j, k, m[l]);
-            if (a->logvar_offset >= 0) {
-                __m256 x = load_avx2(a, l * a->sm + row + a->logvar_offset + j, count, k);
-                if (a->hi != NULL) x = aleatoric_std_avx2(a, j, k, x);
-                _mm256_maskstore_ps(a->picked_logvar + n * d + j, k, x);
-            }
         }
     }
 }
@@ -239,13 +256,13 @@ static void detect(void) { /* the best variant this CPU runs, in the order of VA
 
 static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
     unsigned long long y, state, loc, scale, member, mu, sigma, picked, picked_logvar, hi, std_scale, span, eta,
-        next_input, in_loc, in_scale;
-    long long sm, sn, L, N, d, logvar_offset, next_stride;
+        noise, next_input, in_loc, in_scale;
+    long long sm, sn, L, N, d, logvar_offset, share, next_stride;
     int dtype, threads;
     (void)self;
-    if (!PyArg_ParseTuple(args, "KLLiLLLLKKKKKKKKKKKKKLKKi", &y, &sm, &sn, &dtype, &L, &N, &d, &logvar_offset, &state,
-                          &loc, &scale, &member, &mu, &sigma, &picked, &picked_logvar, &hi, &std_scale, &span, &eta,
-                          &next_input, &next_stride, &in_loc, &in_scale, &threads))
+    if (!PyArg_ParseTuple(args, "KLLiLLLLLKKKKKKKKKKKKKKLKKi", &y, &sm, &sn, &dtype, &L, &N, &d, &logvar_offset, &share,
+                          &state, &loc, &scale, &member, &mu, &sigma, &picked, &picked_logvar, &hi, &std_scale, &span,
+                          &eta, &noise, &next_input, &next_stride, &in_loc, &in_scale, &threads))
         return NULL;
     if (dtype != DTYPE_FLOAT32 && dtype != DTYPE_BFLOAT16) {
         PyErr_Format(PyExc_ValueError, "ensemble_moments: dtype code %d, expected 0 (float32) or 1 (bfloat16)", dtype);
@@ -255,20 +272,22 @@ static PyObject *ensemble_moments(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_RuntimeError, "ensemble_moments: this CPU lacks AVX2");
         return NULL;
     }
-    if (L < 1 || L > MAX_VECTOR_MEMBERS || N < 0 || d < 1 || !y || !state || !loc || !scale || !mu || !sigma || (member && !picked)
-        || (member && logvar_offset >= 0 && !picked_logvar) || ((hi || std_scale || span) && !(hi && std_scale && span))
+    /* noise needs a member per row and, with the log-variance head, its aleatoric std (the bounds) */
+    if (L < 1 || L > MAX_VECTOR_MEMBERS || N < 0 || d < 1 || share < 1 || N % share || !y || !state || !loc || !scale
+        || !mu || !sigma || ((hi || std_scale || span) && !(hi && std_scale && span))
+        || (noise && (!member || eta || (logvar_offset >= 0 && !hi)))
         || (next_input && (!in_loc || !in_scale || next_stride < d))) {
-        PyErr_Format(PyExc_ValueError, "ensemble_moments: L=%lld (expected 1..%d), N=%lld, d=%lld, or a null address",
-                     L, MAX_VECTOR_MEMBERS, N, d);
+        PyErr_Format(PyExc_ValueError, "ensemble_moments: L=%lld (expected 1..%d), N=%lld, d=%lld, share=%lld (a "
+                     "divisor of N), or a missing address", L, MAX_VECTOR_MEMBERS, N, d, share);
         return NULL;
     }
-    moments_args a = {(const char *)(uintptr_t)y, sm, sn, dtype, L, d, logvar_offset,
+    moments_args a = {(const char *)(uintptr_t)y, sm, sn, dtype, L, d, logvar_offset, share,
                       (const float *)(uintptr_t)state, (const float *)(uintptr_t)loc, (const float *)(uintptr_t)scale,
                       (const int64_t *)(uintptr_t)member, (float *)(uintptr_t)mu, (float *)(uintptr_t)sigma,
                       (float *)(uintptr_t)picked, (float *)(uintptr_t)picked_logvar, (const float *)(uintptr_t)hi,
                       (const float *)(uintptr_t)std_scale, (const float *)(uintptr_t)span, (const float *)(uintptr_t)eta,
-                      (float *)(uintptr_t)next_input, next_stride, (const float *)(uintptr_t)in_loc,
-                      (const float *)(uintptr_t)in_scale};
+                      (const float *)(uintptr_t)noise, (float *)(uintptr_t)next_input, next_stride,
+                      (const float *)(uintptr_t)in_loc, (const float *)(uintptr_t)in_scale};
     if (threads < 1) threads = 1;
     const int parallel = threads > 1 && N * L * d >= MIN_PARALLEL_ELEMENTS;
     const row_fn row = VARIANTS[CURRENT].row;
@@ -291,11 +310,12 @@ static PyMethodDef METHODS[] = {
     {"supported", supported, METH_NOARGS, "whether this CPU runs the kernel (AVX2, or AVX-512 F, BW and VL)"},
     SOFTAE_ISA_METHODS,
     {"ensemble_moments", ensemble_moments, METH_VARARGS,
-     "ensemble_moments(y, member_stride, row_stride, dtype, L, N, d, logvar_offset, state, loc, scale, member, "
-     "mu, sigma, picked, picked_logvar, hi, std_scale, span, eta, next_input, next_stride, in_loc, in_scale, "
-     "threads): mu (or mu + sigma * eta) and sigma (and a picked member's mean and raw log-variance, or with hi, "
-     "std_scale and span its aleatoric std) of an ensemble's raw output, and the mean normalized into the next "
-     "input's rows; addresses of contiguous float32 buffers, 0 for none"},
+     "ensemble_moments(y, member_stride, row_stride, dtype, L, N, d, logvar_offset, share, state, loc, scale, "
+     "member, mu, sigma, picked, picked_logvar, hi, std_scale, span, eta, noise, next_input, next_stride, in_loc, "
+     "in_scale, threads): mu (or mu + sigma * eta, or a picked member's mean plus its aleatoric std times noise) "
+     "and sigma (and a picked member's mean and raw log-variance, or with hi, std_scale and span its aleatoric "
+     "std) of an ensemble's raw output, output row n from its row n / share, and the first output normalized into "
+     "the next input's rows; addresses of contiguous float32 buffers, 0 for none"},
     {NULL, NULL, 0, NULL},
 };
 

@@ -80,6 +80,11 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     #: input laid out at once, prepared kernel calls where they run); ``False``: the per-step tensor
     #: loop that stochastic propagation runs (the same values; to compare)
     deterministic_rollouts: bool = True
+    #: trajectory sampling with particles (``mode="sample"``) scored through
+    #: :meth:`~torchrl_softae.modules.EnsembleWorldModel.sampled_rollout` (laid out once, the
+    #: noise drawn before the first step, prepared kernel calls where they run); ``False``: the
+    #: per-step tensor loop (the same values; to compare)
+    sampled_rollouts: bool = True
 
     def __init__(
         self,
@@ -372,6 +377,8 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         model_actions = self.world_model.normalized_actions(entries["action"])
         if self.deterministic and P == 1 and self.deterministic_rollouts:
             return self._deterministic_returns(stack, obs, entries, model_actions)
+        if self.mode == "sample" and member is not None and self.sampled_rollouts:
+            return self._sampled_returns(stack, obs, entries, model_actions, member)
         ret = torch.zeros(B, N, P, 1, device=obs.device)
         for h in range(H):
             step = {k: v[h] for k, v in entries.items()}
@@ -416,6 +423,31 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             ret += reward if reward.shape == ret.shape else reward.reshape(ret.shape)
             obs = nxt
         return ret.reshape(B, N, 1, 1)
+
+    def _sampled_returns(self, stack, obs, entries, model_actions, member) -> torch.Tensor:
+        """:meth:`_returns_on_tensors` with trajectory sampling, each particle following its member
+        (``obs`` ``(B, N, P, d_s)``, ``member`` ``(B, N, P)``; ``entries`` and ``model_actions``
+        step-major, ``(H, B, N, 1, k)``): the model's steps laid out once
+        (:meth:`EnsembleWorldModel.sampled_rollout`, the network once for a candidate's particles
+        at the first step), the noise drawn from this env's generator as stepping draws it; the
+        rewards as the transforms compute them."""
+        B, N, P, d_s = obs.shape
+        H = model_actions.shape[0]
+        rollout = self.world_model.sampled_rollout(
+            obs[:, :, 0].reshape(B * N, d_s), model_actions.reshape(H, B * N, -1), member.reshape(B * N, P),
+            self.aleatoric_noise, self._generator)
+        actions = entries["action"].expand(H, B, N, P, entries["action"].shape[-1]).unbind(0)
+        ret = torch.zeros(B, N, P, 1, device=obs.device)
+        # the model env's own reward, zero: one read-only tensor for every step
+        no_reward = torch.zeros(1, 1, 1, 1, device=obs.device).expand(B, N, P, 1)
+        for action, (nxt, sigma) in zip(actions, rollout):
+            nxt, sigma = nxt.view(B, N, P, d_s), sigma.view(B, N, P, d_s)
+            reward = no_reward
+            for t in stack:
+                reward = t.plan_reward(obs, action, nxt, sigma, reward)
+            ret += reward if reward.shape == ret.shape else reward.reshape(ret.shape)
+            obs = nxt
+        return ret
 
     def _returns_through_step(self, env, obs, acts, member) -> torch.Tensor:
         """Any transform stack: TorchRL's ``env.step`` on a tensordict per horizon step."""

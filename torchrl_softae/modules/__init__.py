@@ -1,7 +1,10 @@
 """Learned models and planners."""
 from torchrl_softae.modules.ensemble import (
     DeterministicRollout,
-    EnsembleLinear, EnsembleWorldModel, Normalizer, 
+    EnsembleLinear,
+    EnsembleWorldModel,
+    Normalizer,
+    SampledRollout,
     ensemble_std,
     symexp,
     symlog,
@@ -14,6 +17,7 @@ __all__ = [
     "EnsembleLinear",
     "EnsembleWorldModel",
     "Normalizer",
+    "SampledRollout",
     "ensemble_std",
     "symlog",
     "symexp",

@@ -59,12 +59,12 @@ def ensemble_moments(
     member_index: torch.Tensor | None = None, with_logvar: bool = False,
     logvar_bounds: tuple[torch.Tensor, torch.Tensor] | None = None, eta: torch.Tensor | None = None,
     next_input: torch.Tensor | None = None, input_loc: torch.Tensor | None = None,
-    input_scale: torch.Tensor | None = None,
+    input_scale: torch.Tensor | None = None, noise: torch.Tensor | None = None, particles: int = 1,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """Moments of the member means ``m_l = state + loc + scale * output[l, :, :d]``
     (:func:`prepare_moments`, run at once; its arguments)."""
     call, outputs = prepare_moments(output, state, loc, scale, d, member_index, with_logvar, logvar_bounds, eta,
-                                    next_input, input_loc, input_scale)
+                                    next_input, input_loc, input_scale, noise=noise, particles=particles)
     call()
     return outputs
 
@@ -75,6 +75,7 @@ def prepare_moments(
     logvar_bounds: tuple[torch.Tensor, torch.Tensor] | None = None, eta: torch.Tensor | None = None,
     next_input: torch.Tensor | None = None, input_loc: torch.Tensor | None = None,
     input_scale: torch.Tensor | None = None, out: tuple[torch.Tensor, torch.Tensor] | None = None,
+    noise: torch.Tensor | None = None, particles: int = 1,
 ) -> tuple[Callable[[], None], tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]]:
     """Moments of the member means ``m_l = state + loc + scale * output[l, :, :d]``: the kernel's
     call on these buffers, checked and with its arguments prepared once (a planning rollout runs
@@ -82,11 +83,11 @@ def prepare_moments(
     inputs where they lie when it runs (``member_index`` is checked here).
 
     Args:
-        output: ``(L, N, C)`` raw network output, fp32 or bf16, any member and row strides (unit
-            stride along ``C``); the normalized delta means are its first ``d`` columns and, with
-            ``with_logvar``, the raw log-variances the next ``d``.
-        state: ``(N, d)`` the state in the model's space; loc, scale: ``(d,)`` the output
-            normalizer.
+        output: ``(L, N / particles, C)`` raw network output, fp32 or bf16, any member and row
+            strides (unit stride along ``C``); the normalized delta means are its first ``d``
+            columns and, with ``with_logvar``, the raw log-variances the next ``d``.
+        state: ``(N / particles, d)`` the state in the model's space; loc, scale: ``(d,)`` the
+            output normalizer.
         member_index: ``(N,)`` int64, the member each row follows (trajectory sampling), or ``None``.
         logvar_bounds: ``(min_logvar, max_logvar)``, ``(d,)`` each (the PETS soft bounds): with
             ``member_index`` and ``with_logvar``, return that member's aleatoric std in the model's
@@ -98,27 +99,45 @@ def prepare_moments(
         next_input: ``(N, K)`` fp32 with unit column stride, ``K >= d``: its first ``d`` columns
             receive the first output normalized, ``(out - input_loc) / input_scale`` (``(d,)``
             each): the state columns of the next step's network input.
-
+        noise: ``(N, d)`` fp32 standard normal draws, with ``member_index``: the first output is
+            then that member's sampled next state, its mean plus its aleatoric std times ``noise``
+            (the mean alone without ``with_logvar``: deterministic members), PETS' trajectory
+            sampling. Needs ``logvar_bounds`` with ``with_logvar``; not with ``eta``. The member's
+            mean and std are then not returned.
+        particles: output rows per row of ``output`` and ``state``: row ``n`` of the results is
+            computed from their row ``n // particles`` (a candidate's particles at the first step
+            of a plan share its state and action, so the network ran once for them).
         out: ``(mu, sigma)`` to write, ``(N, d)`` contiguous fp32 each (new tensors if ``None``).
 
     Returns:
-        The call, and ``mu`` (or ``mu + sigma * eta``) and ``sigma`` ``(N, d)`` [mu, sigma; sigma
-        with Bessel's correction], and with ``member_index`` that member's mean and (with
-        ``with_logvar``) raw log-variance or aleatoric std ``(N, d)``, else ``None``. All fp32.
-        Only where :func:`applies` holds.
+        The call, and ``mu`` (or ``mu + sigma * eta``, or the sampled next state) and ``sigma``
+        ``(N, d)`` [mu, sigma; sigma with Bessel's correction], and with ``member_index`` (without
+        ``noise``) that member's mean and (with ``with_logvar``) raw log-variance or aleatoric std
+        ``(N, d)``, else ``None``. All fp32. Only where :func:`applies` holds.
     """
-    L, n, cols = output.shape
+    L, sources, cols = output.shape
     if cols < (2 * d if with_logvar else d):
         raise ValueError(f"ensemble_moments: output has {cols} columns, expected at least {2 * d if with_logvar else d}")
+    if particles < 1:
+        raise ValueError(f"ensemble_moments: particles={particles}, expected >= 1")
+    n = sources * particles
     state, loc, scale = (_fp32(t) for t in (state, loc.reshape(d), scale.reshape(d)))
-    if state.shape != (n, d):
-        raise ValueError(f"ensemble_moments: state has shape {tuple(state.shape)}, expected ({n}, {d})")
-    eta_address = next_address = next_stride = in_loc_address = in_scale_address = 0
+    if state.shape != (sources, d):
+        raise ValueError(f"ensemble_moments: state has shape {tuple(state.shape)}, expected ({sources}, {d})")
+    eta_address = noise_address = next_address = next_stride = in_loc_address = in_scale_address = 0
     if eta is not None:
         eta = _fp32(eta)
         if eta.shape != (n, d):
             raise ValueError(f"ensemble_moments: eta has shape {tuple(eta.shape)}, expected ({n}, {d})")
         eta_address = eta.data_ptr()
+    if noise is not None:
+        if member_index is None or eta is not None or (with_logvar and logvar_bounds is None):
+            raise ValueError("ensemble_moments: noise needs member_index (and logvar_bounds with with_logvar), "
+                             "and no eta")
+        noise = _fp32(noise)
+        if noise.shape != (n, d):
+            raise ValueError(f"ensemble_moments: noise has shape {tuple(noise.shape)}, expected ({n}, {d})")
+        noise_address = noise.data_ptr()
     if next_input is not None:
         if (next_input.dim() != 2 or next_input.shape[0] != n or next_input.shape[1] < d or next_input.stride(1) != 1
                 or next_input.dtype != torch.float32 or next_input.device.type != "cpu"):
@@ -145,10 +164,11 @@ def prepare_moments(
         if not (0 <= int(lo) and int(hi) < L):  # the kernel reads the member's row: never out of bounds
             raise ValueError(f"ensemble_moments: member_index outside [0, {L})")
         member_address = member_index.data_ptr()
-        picked = torch.empty(n, d)
-        picked_logvar = torch.empty(n, d) if with_logvar else None
+        if noise is None:
+            picked = torch.empty(n, d)
+            picked_logvar = torch.empty(n, d) if with_logvar else None
     bounds = (0, 0, 0)
-    if logvar_bounds is not None and picked_logvar is not None:
+    if logvar_bounds is not None and member_index is not None and with_logvar:
         lo, hi = (t.float().reshape(d) for t in logvar_bounds)
         if not bool((hi - lo).max() < MAX_LOGVAR_SPAN):
             raise ValueError(f"ensemble_moments: logvar_bounds span {float((hi - lo).max()):.4g}, expected "
@@ -157,12 +177,12 @@ def prepare_moments(
         bounds = (hi.data_ptr(), std_scale.data_ptr(), span.data_ptr())
         logvar_bounds = (hi, std_scale, span)
     arguments = (output.data_ptr(), output.stride(0), output.stride(1), _DTYPE_CODES[output.dtype], L, n, d,
-                 d if with_logvar else -1, state.data_ptr(), loc.data_ptr(), scale.data_ptr(), member_address,
-                 mu.data_ptr(), sigma.data_ptr(), 0 if picked is None else picked.data_ptr(),
-                 0 if picked_logvar is None else picked_logvar.data_ptr(), *bounds, eta_address, next_address,
-                 next_stride, in_loc_address, in_scale_address, torch.get_num_threads())
+                 d if with_logvar else -1, particles, state.data_ptr(), loc.data_ptr(), scale.data_ptr(),
+                 member_address, mu.data_ptr(), sigma.data_ptr(), 0 if picked is None else picked.data_ptr(),
+                 0 if picked_logvar is None else picked_logvar.data_ptr(), *bounds, eta_address, noise_address,
+                 next_address, next_stride, in_loc_address, in_scale_address, torch.get_num_threads())
     # every tensor whose address the call reads, kept alive with it
-    alive = (output, state, loc, scale, member_index, logvar_bounds, eta, next_input, input_loc, input_scale)
+    alive = (output, state, loc, scale, member_index, logvar_bounds, eta, noise, next_input, input_loc, input_scale)
 
     def call(alive=alive) -> None:
         with seen_by_profiler("torchrl_softae::ensemble_moments"):

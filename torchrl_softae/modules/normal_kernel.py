@@ -33,7 +33,7 @@ if _normal is not None and _normal.supported_isas()[-1] == "portable":
     # torch.randn: draw with torch there
     _normal = None
 
-__all__ = ["available", "applies", "randn", "add_scaled_randn", "isa", "supported_isas", "use_isa", "enabled"]
+__all__ = ["available", "applies", "randn", "normal_", "add_scaled_randn", "isa", "supported_isas", "use_isa", "enabled"]
 
 #: ``False``: every draw by ``torch.randn`` (its stream), to compare or to reproduce a run made
 #: before the kernel; read at every call. The environment variable ``SOFTAE_NORMAL_KERNEL=0`` sets
@@ -75,7 +75,17 @@ def randn(shape: tuple[int, ...], generator: torch.Generator | None = None, dtyp
     ``torch.randn``."""
     if not _kernel_draws(dtype, device or "cpu", generator):
         return torch.randn(shape, generator=generator, dtype=dtype, device=device)
-    out = torch.empty(shape, dtype=torch.float32)
+    return normal_(torch.empty(shape, dtype=torch.float32), generator)
+
+
+def normal_(out: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Fills the contiguous tensor ``out`` in place with the values ``randn(out.shape, generator,
+    out.dtype, out.device)`` would return (a planning rollout draws its steps' noise into its own
+    buffer, the generator consumed as by one draw per step). Returns ``out``."""
+    if not out.is_contiguous():
+        raise ValueError(f"normal_: out has strides {out.stride()}, expected a contiguous tensor")
+    if not _kernel_draws(out.dtype, out.device, generator):
+        return out.copy_(torch.randn(out.shape, generator=generator, dtype=out.dtype, device=out.device))
     with seen_by_profiler("torchrl_softae::randn"):
         _normal.fill(out.data_ptr(), 0, 0, out.numel(), _seed(generator), torch.get_num_threads())
     return out
