@@ -401,7 +401,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         """:meth:`_returns_on_tensors` with deterministic propagation and one particle per candidate
         (``obs`` ``(B, N, 1, d_s)``; ``entries`` and ``model_actions`` step-major, ``(H, B, N, 1,
         k)``): the model's steps laid out once (:meth:`EnsembleWorldModel.deterministic_rollout`),
-        on flat ``(B * N, k)`` rows; the rewards as the transforms compute them."""
+        on flat ``(B * N, k)`` rows; the rewards of all steps at once (:meth:`_rollout_returns`)."""
         B, N, _, d_s = obs.shape
         H = model_actions.shape[0]
         eta = None
@@ -409,20 +409,9 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             eta = entries.get("eta")
             self._check_eta(eta, (H, *obs.shape))
             eta = eta.reshape(H, B * N, d_s)
-        obs = obs.reshape(B * N, d_s)
-        rollout = self.world_model.deterministic_rollout(obs, model_actions.reshape(H, B * N, -1), eta)
-        actions = entries["action"].reshape(H, B * N, -1).unbind(0)
-        ret = torch.zeros(B * N, 1, device=obs.device)
-        # the model env's own reward, zero: one read-only tensor for every step (a transform that
-        # wrote into it in place would get an error, not corrupt the next step's)
-        no_reward = torch.zeros(1, 1, device=obs.device).expand(B * N, 1)
-        for action, (nxt, sigma) in zip(actions, rollout):
-            reward = no_reward
-            for t in stack:
-                reward = t.plan_reward(obs, action, nxt, sigma, reward)
-            ret += reward if reward.shape == ret.shape else reward.reshape(ret.shape)
-            obs = nxt
-        return ret.reshape(B, N, 1, 1)
+        rollout = self.world_model.deterministic_rollout(obs.reshape(B * N, d_s), model_actions.reshape(H, B * N, -1),
+                                                         eta)
+        return self._rollout_returns(stack, rollout, entries["action"].reshape(H, B * N, -1)).reshape(B, N, 1, 1)
 
     def _sampled_returns(self, stack, obs, entries, model_actions, member) -> torch.Tensor:
         """:meth:`_returns_on_tensors` with trajectory sampling, each particle following its member
@@ -430,24 +419,33 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         step-major, ``(H, B, N, 1, k)``): the model's steps laid out once
         (:meth:`EnsembleWorldModel.sampled_rollout`, the network once for a candidate's particles
         at the first step), the noise drawn from this env's generator as stepping draws it; the
-        rewards as the transforms compute them."""
+        rewards of all steps at once (:meth:`_rollout_returns`)."""
         B, N, P, d_s = obs.shape
         H = model_actions.shape[0]
         rollout = self.world_model.sampled_rollout(
             obs[:, :, 0].reshape(B * N, d_s), model_actions.reshape(H, B * N, -1), member.reshape(B * N, P),
             self.aleatoric_noise, self._generator)
-        actions = entries["action"].expand(H, B, N, P, entries["action"].shape[-1]).unbind(0)
-        ret = torch.zeros(B, N, P, 1, device=obs.device)
-        # the model env's own reward, zero: one read-only tensor for every step
-        no_reward = torch.zeros(1, 1, 1, 1, device=obs.device).expand(B, N, P, 1)
-        for action, (nxt, sigma) in zip(actions, rollout):
-            nxt, sigma = nxt.view(B, N, P, d_s), sigma.view(B, N, P, d_s)
-            reward = no_reward
-            for t in stack:
-                reward = t.plan_reward(obs, action, nxt, sigma, reward)
-            ret += reward if reward.shape == ret.shape else reward.reshape(ret.shape)
-            obs = nxt
-        return ret
+        action = entries["action"]
+        return self._rollout_returns(stack, rollout, action.expand(H, B, N, P, action.shape[-1]), (B, N, P))
+
+    @staticmethod
+    def _rollout_returns(stack, rollout, actions, batch=None) -> torch.Tensor:
+        """The returns ``(*batch, 1)`` of a planning rollout's rows (``batch``: their shape, flat
+        without it) under the actions ``(H, *batch, k)``: every step run first, then each
+        transform's reward for all steps in one call (its steps' arguments stacked, ``(H, *batch,
+        ...)``; :meth:`~torchrl_softae.modules.planners.PlanningTransform.plan_reward`), summed over
+        the horizon. One call instead of one per step between the network calls, where every op ran
+        cache-cold (``benchmarks/cold_ops.py``)."""
+        trajectory, sigmas = rollout.run()
+        H = sigmas.shape[0]
+        batch = tuple(sigmas.shape[1:-1]) if batch is None else tuple(batch)
+        trajectory = trajectory.view(H + 1, *batch, -1)
+        sigmas = sigmas.view(H, *batch, -1)
+        # the model env's own reward, zero: one read-only value for every step and row
+        reward = torch.zeros((1,) * (len(batch) + 2), device=sigmas.device).expand(H, *batch, 1)
+        for t in stack:
+            reward = t.plan_reward(trajectory[:-1], actions, trajectory[1:], sigmas, reward)
+        return reward.reshape(H, *batch, 1).sum(0, dtype=torch.float32)
 
     def _returns_through_step(self, env, obs, acts, member) -> torch.Tensor:
         """Any transform stack: TorchRL's ``env.step`` on a tensordict per horizon step."""

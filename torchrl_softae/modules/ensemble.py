@@ -914,7 +914,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
 
     def _rollout_layout(self, steps: int, rows: int, with_eta: bool, device, owner: int) -> SimpleNamespace:
         """The buffers of a :class:`DeterministicRollout` of ``steps`` x ``rows`` (every step's
-        network input, initial states, ``eta``, and each step's ``s'`` and ``sigma``) and, where
+        network input, ``eta``, the trajectory of states from the initial ones, each step's
+        ``sigma``) and, where
         :meth:`_rollout_network` allows, its steps as prepared kernel calls (``compiled``:
         ``[(network call, moments call, (s', sigma)), ...]``; else ``None``), held by ``owner``
         (:meth:`_take_rollout_layout`)."""
@@ -924,24 +925,24 @@ class EnsembleWorldModel(TensorDictModuleBase):
 
         def build():
             layout = SimpleNamespace(
-                inputs=torch.empty(steps, rows, d + d_a, device=device), observation=torch.empty(rows, d, device=device),
+                inputs=torch.empty(steps, rows, d + d_a, device=device),
                 eta=torch.empty(steps, rows, d, device=device) if with_eta else None,
-                states=torch.empty(steps, rows, d, device=device), sigmas=torch.empty(steps, rows, d, device=device),
-                compiled=None)
+                trajectory=torch.empty(steps + 1, rows, d, device=device),
+                sigmas=torch.empty(steps, rows, d, device=device), compiled=None)
             if paths is None:
                 return layout
             raw = torch.empty(self.ensemble_size, rows, cols or self.layers[-1].out_features)
             out, norm = self.output_normalizer, self.input_normalizer
-            inputs, states, sigmas, eta = layout.inputs, layout.states, layout.sigmas, layout.eta
+            inputs, states, sigmas, eta = layout.inputs, layout.trajectory, layout.sigmas, layout.eta
             layout.compiled = []
             for h in range(steps):
                 network, _ = _WHOLE_NETWORK_KERNELS[paths[0]].prepare_forward(inputs[h], packed[0], raw.shape[-1],
                                                                               out=raw)
                 moments, _ = _moments_kernel.prepare_moments(
-                    raw, layout.observation if h == 0 else states[h - 1], out.loc, out.scale, d,
+                    raw, states[h], out.loc, out.scale, d,
                     eta=None if eta is None else eta[h], next_input=inputs[h + 1] if h + 1 < steps else None,
-                    input_loc=norm.loc[:d], input_scale=norm.scale[:d], out=(states[h], sigmas[h]))
-                layout.compiled.append((network, moments, (states[h], sigmas[h])))
+                    input_loc=norm.loc[:d], input_scale=norm.scale[:d], out=(states[h + 1], sigmas[h]))
+                layout.compiled.append((network, moments, (states[h + 1], sigmas[h])))
             return layout
 
         return self._take_rollout_layout(("rollout", steps, rows, with_eta, paths, str(device)), packed, owner, build)
@@ -950,7 +951,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
                                 owner: int) -> SimpleNamespace:
         """The buffers of a :class:`SampledRollout` of ``steps`` x ``rows`` candidates x
         ``particles`` (the first step's network input, ``rows`` rows, the later steps' ``rows *
-        particles``, initial states, members, noise, and each step's ``s'`` and ``sigma``) and,
+        particles``, the candidates' initial states, members, noise, the trajectory of every
+        particle's states from the initial ones, each step's ``sigma``) and,
         where :meth:`_rollout_network` allows and the aleatoric std has bounds the moments kernel
         takes, its steps as prepared kernel calls (``compiled``, as :meth:`_rollout_layout`'s),
         held by ``owner`` (:meth:`_take_rollout_layout`)."""
@@ -967,7 +969,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
                 inputs=torch.empty(steps - 1, n, d + d_a, device=device), observation=torch.empty(rows, d, device=device),
                 member=torch.zeros(n, dtype=torch.int64, device=device),  # valid before the first rollout fills it
                 noise=torch.empty(steps, n, d, device=device) if with_noise else None,
-                states=torch.empty(steps, n, d, device=device), sigmas=torch.empty(steps, n, d, device=device),
+                trajectory=torch.empty(steps + 1, n, d, device=device), sigmas=torch.empty(steps, n, d, device=device),
                 compiled=None)
             if paths is None:
                 return layout
@@ -979,17 +981,18 @@ class EnsembleWorldModel(TensorDictModuleBase):
             bounds = (self.min_logvar, self.max_logvar) if with_logvar else None
             # without aleatoric noise s' is the member's mean: zero noise, read by no step
             zero_noise = None if with_noise else torch.zeros(n, d)
+            states, sigmas = layout.trajectory, layout.sigmas
             layout.compiled = []
             for h in range(steps):
                 # the first step's rows are the candidates' (their particles share them), then every particle's
                 x, y, which = (layout.first_input, first_raw, 0) if h == 0 else (layout.inputs[h - 1], raw, -1)
                 network, _ = kernels[which].prepare_forward(x, packed[which], width, out=y)
                 moments, _ = _moments_kernel.prepare_moments(
-                    y, layout.observation if h == 0 else layout.states[h - 1], out.loc, out.scale, d, layout.member,
+                    y, layout.observation if h == 0 else states[h], out.loc, out.scale, d, layout.member,
                     with_logvar, bounds, next_input=layout.inputs[h] if h + 1 < steps else None,
-                    input_loc=norm.loc[:d], input_scale=norm.scale[:d], out=(layout.states[h], layout.sigmas[h]),
+                    input_loc=norm.loc[:d], input_scale=norm.scale[:d], out=(states[h + 1], sigmas[h]),
                     noise=layout.noise[h] if with_noise else zero_noise, particles=particles if h == 0 else 1)
-                layout.compiled.append((network, moments, (layout.states[h], layout.sigmas[h])))
+                layout.compiled.append((network, moments, (states[h + 1], sigmas[h])))
             return layout
 
         key = ("sampled rollout", steps, rows, particles, with_noise, paths, str(device))
@@ -1070,7 +1073,7 @@ class _PlanningRollout:
     they do not run as prepared calls)."""
 
     def __len__(self) -> int:
-        return self._layout.states.shape[0]
+        return self._layout.sigmas.shape[0]
 
     @property
     def compiled(self) -> bool:
@@ -1092,7 +1095,18 @@ class _PlanningRollout:
         finally:
             self._release()
 
+    def run(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every step at once: the trajectory ``(H + 1, rows, d_s)`` (the initial states, then each
+        step's ``s'``) and each step's ``sigma`` ``(H, rows, d_s)``, the rollout's buffers (a model
+        env then scores all steps in one reward call instead of one per step between the network
+        calls)."""
+        for _ in self:
+            pass
+        return self._layout.trajectory, self._layout.sigmas
+
     def _torch_steps(self):
+        """The steps as torch ops (where they do not run as prepared kernel calls), writing
+        ``s'`` and ``sigma`` into the layout's buffers as the prepared calls do."""
         raise NotImplementedError
 
     def _release(self) -> None:
@@ -1169,7 +1183,7 @@ class DeterministicRollout(_PlanningRollout):
         # next state's by the step before
         layout.inputs[..., d:] = normalized_actions
         layout.inputs[0] = model.network_input(observation, normalized_actions[0], action_normalized=True)
-        layout.observation.copy_(observation)
+        layout.trajectory[0].copy_(observation)
         if eta is not None:
             layout.eta.copy_(eta)
 
@@ -1180,14 +1194,15 @@ class DeterministicRollout(_PlanningRollout):
 
     def _torch_steps(self):
         model, layout = self.model, self._layout
-        inputs, eta = layout.inputs, layout.eta
+        inputs, eta, states, sigmas = layout.inputs, layout.eta, layout.trajectory, layout.sigmas
         H = inputs.shape[0]
-        state = layout.observation
         for h in range(H):
             raw = model.network_output(inputs[h], with_logvar=False)
             state, sigma, _, _ = model._moments_from_output(
-                raw, state, eta=None if eta is None else eta[h], next_input=inputs[h + 1] if h + 1 < H else None)
-            yield state, sigma
+                raw, states[h], eta=None if eta is None else eta[h], next_input=inputs[h + 1] if h + 1 < H else None)
+            states[h + 1].copy_(state)
+            sigmas[h].copy_(sigma)
+            yield states[h + 1], sigmas[h]
 
 
 class SampledRollout(_PlanningRollout):
@@ -1248,6 +1263,7 @@ class SampledRollout(_PlanningRollout):
         if H > 1:  # the later steps' action columns, each candidate's repeated for its particles
             layout.inputs.view(H - 1, M, P, -1)[..., d:] = normalized_actions[1:].unsqueeze(2)
         layout.observation.copy_(observation)
+        layout.trajectory[0].view(M, P, d).copy_(observation.unsqueeze(1))  # every particle's initial state
         layout.member.copy_(member_index.reshape(-1))
         if aleatoric_noise:
             # one draw per step, in step order, as stepping draws them: with autograd on, stepping's
@@ -1267,16 +1283,17 @@ class SampledRollout(_PlanningRollout):
 
     def _torch_steps(self):
         model, layout, P = self.model, self._layout, self.particles
-        d, H = model.observation_dim, layout.states.shape[0]
+        states, sigmas = layout.trajectory, layout.sigmas
+        d, H = model.observation_dim, sigmas.shape[0]
         with_noise = layout.noise is not None
-        state = layout.observation
         for h in range(H):
             x = layout.first_input if h == 0 else layout.inputs[h - 1]
             raw = model.network_output(x, with_logvar=with_noise)
             if h == 0:  # the candidates' rows, each repeated for its particles
-                raw, state = raw.repeat_interleave(P, dim=1), state.repeat_interleave(P, dim=0)
-            _, sigma, picked, ale = model._moments_from_output(raw, state, with_noise, layout.member)
-            state = picked if not with_noise else torch.addcmul(picked, ale, layout.noise[h])
+                raw = raw.repeat_interleave(P, dim=1)
+            _, sigma, picked, ale = model._moments_from_output(raw, states[h], with_noise, layout.member)
+            states[h + 1].copy_(picked if not with_noise else torch.addcmul(picked, ale, layout.noise[h]))
+            sigmas[h].copy_(sigma)
             if h + 1 < H:
-                layout.inputs[h, :, :d] = model._normalized_states(state)
-            yield state, sigma
+                layout.inputs[h, :, :d] = model._normalized_states(states[h + 1])
+            yield states[h + 1], sigmas[h]

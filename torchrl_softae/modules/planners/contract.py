@@ -88,7 +88,11 @@ class PlanningTransform:
     def plan_reward(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor,
                     epistemic_std: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
         """The reward ``(*B, 1)`` after this transform, given the one before it (a new tensor: the
-        arguments are read only, and the model env's own zero reward may be one expanded value)."""
+        arguments are read only, and the model env's own zero reward may be one expanded value).
+
+        A model env may call it once for every step of a rollout (``*B`` then starting with the
+        horizon, each argument its steps' values stacked), so it must compute each step's reward
+        from that step's arguments alone, as TorchRL's transforms see one step."""
         return reward
 
 
