@@ -19,7 +19,7 @@ try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenM
 except ImportError:
     _amx_network = None
 
-__all__ = ["available", "why_not", "cache_tag", "pack_layer", "pack_network", "forward", "prepare_forward",
+__all__ = ["RUNS", "available", "why_not", "cache_tag", "pack_layer", "pack_network", "forward", "prepare_forward",
            "PackedLayer", "PackedNetwork"]
 
 #: features are padded to multiples of this (a tile's 32 bf16 inputs; two 16-column tiles)
@@ -33,10 +33,16 @@ def available(dtype: torch.dtype = torch.bfloat16) -> bool:
     return dtype == torch.bfloat16 and _amx_network is not None and _amx_network.available()
 
 
-def why_not() -> str | None:
-    """Why :func:`available` is ``False`` (``None`` where it is ``True``)."""
+#: what the kernel runs, for errors that name it (as :data:`.fma_network.RUNS`)
+RUNS = "bf16 with nn.SiLU on an AMX CPU"
+
+
+def why_not(dtype: torch.dtype = torch.bfloat16) -> str | None:
+    """Why :func:`available` is ``False`` in ``dtype`` (``None`` where it is ``True``)."""
     if _amx_network is None:
         return "the extension torchrl_softae.modules._amx_network was not built (no C compiler targeting AMX)"
+    if dtype != torch.bfloat16:
+        return f"it computes in bfloat16, not {dtype}"
     return _amx_network.why_not()
 
 

@@ -462,14 +462,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
             return "bmm"
         forced = self.inference_path if self.inference_path != "auto" else os.environ.get("SOFTAE_INFERENCE_PATH", "auto")
         if forced in INFERENCE_PATHS:
-            if forced == "amx-network" and forced not in self.available_inference_paths(dtype):
-                raise RuntimeError(f"inference path 'amx-network' runs bf16 with nn.SiLU on an AMX CPU: got {dtype}, "
-                                   f"activation {type(self.activation).__name__}, "
-                                   f"{_amx_network.why_not() or 'AMX available'}")
-            if forced == "fma-network" and forced not in self.available_inference_paths(dtype):
-                raise RuntimeError(f"inference path 'fma-network' runs fp32 (AVX-512F or AVX2+FMA) or bf16 "
-                                   f"(AVX512-BF16) with nn.SiLU: got {dtype}, activation "
-                                   f"{type(self.activation).__name__}, {_fma_network.why_not(dtype) or 'it runs here'}")
+            if forced in _WHOLE_NETWORK_KERNELS and forced not in self.available_inference_paths(dtype):
+                kernel = _WHOLE_NETWORK_KERNELS[forced]
+                raise RuntimeError(f"inference path {forced!r} runs {kernel.RUNS}: got {dtype}, activation "
+                                   f"{type(self.activation).__name__}, {kernel.why_not(dtype) or 'it runs here'}")
             if forced not in self.available_inference_paths():
                 raise RuntimeError(f"inference path {forced!r} needs nn.SiLU and the compiled kernel "
                                    f"(activation {type(self.activation).__name__}, kernel built: {_silu_kernel.available()})")

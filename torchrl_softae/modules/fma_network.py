@@ -22,7 +22,7 @@ try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenM
 except ImportError:
     _fma_network = None
 
-__all__ = ["available", "why_not", "isa", "supported_isas", "use_isa", "cache_tag", "pack_layer", "pack_network",
+__all__ = ["RUNS", "available", "why_not", "isa", "supported_isas", "use_isa", "cache_tag", "pack_layer", "pack_network",
            "forward", "prepare_forward", "PackedLayer", "PackedNetwork", "DTYPES"]
 
 #: output columns per packed weight panel (two AVX-512 registers, four AVX2 ones)
@@ -40,6 +40,10 @@ def available(dtype: torch.dtype = torch.float32) -> bool:
     if _fma_network is None or isa() is None:
         return False
     return dtype == torch.float32 or (dtype == torch.bfloat16 and _fma_network.bf16_supported())
+
+
+#: what the kernel runs, for errors that name it (as :data:`.amx_network.RUNS`)
+RUNS = "fp32 (AVX-512F or AVX2+FMA) or bf16 (AVX512-BF16) with nn.SiLU"
 
 
 def why_not(dtype: torch.dtype = torch.float32) -> str | None:
