@@ -613,6 +613,21 @@ def _fused_moments_match_the_torch_ops(monkeypatch):
         kernel(raw, torch.zeros(8, 3), torch.zeros(3), scale, 3, member, True, (lo, lo + 90))
 
 
+def _rollout_model(g: torch.Generator):
+    """A small trained-normalizer ensemble for the rollout tests (21 states: a masked tail in the
+    moments), its fitting states, the whole-network paths, and the (dtype, path) cases that run
+    here: each whole-network kernel in each dtype it runs in, and a torch path."""
+    torch.manual_seed(0)
+    model = EnsembleWorldModel(21, 4, num_cells=64, depth=2)
+    obs = torch.randn(700, 21, generator=g) * 3
+    model.fit_normalizers(obs, torch.rand(700, 4, generator=g), obs + torch.randn(700, 21, generator=g))
+    model.eval()
+    whole = ("amx-network", "fma-network")
+    cases = [(dtype, path) for dtype in (None, torch.bfloat16) for path in (*whole, "bmm")
+             if path in model.available_inference_paths(dtype or torch.float32)]
+    return model, obs, whole, cases
+
+
 @pytest.mark.skipif(not moments_kernel.available(), reason="the moments kernel was not built or this CPU lacks AVX2")
 def test_deterministic_rollout_matches_the_torch_ops():
     """A deterministic rollout (Mean-AE, and SoftAE's mu + sigma * eta) as prepared kernel calls,
@@ -621,15 +636,8 @@ def test_deterministic_rollout_matches_the_torch_ops():
     next input by the moments kernel, as the torch ops do it); a torch path runs the torch ops. A
     second rollout of the same shape reuses the buffers and calls with its own values; a parameter
     change rebuilds them."""
-    torch.manual_seed(0)
     g = torch.Generator().manual_seed(1)
-    model = EnsembleWorldModel(21, 4, num_cells=64, depth=2)  # 21: a masked tail in the moments
-    obs = torch.randn(700, 21, generator=g) * 3
-    model.fit_normalizers(obs, torch.rand(700, 4, generator=g), obs + torch.randn(700, 21, generator=g))
-    model.eval()
-    whole = ("amx-network", "fma-network")
-    cases = [(dtype, path) for dtype in (None, torch.bfloat16) for path in (*whole, "bmm")
-             if path in model.available_inference_paths(dtype or torch.float32)]
+    model, obs, whole, cases = _rollout_model(g)
     assert ("fma-network" in model.available_inference_paths(torch.float32)) == fma_network.available(torch.float32)
     H, M = 4, 37
 
@@ -775,15 +783,8 @@ def test_sampled_rollout_matches_the_torch_ops():
     reuses the layout."""
     from torchrl_softae.modules import normal_kernel
 
-    torch.manual_seed(0)
     g = torch.Generator().manual_seed(1)
-    model = EnsembleWorldModel(21, 4, num_cells=64, depth=2)
-    obs = torch.randn(700, 21, generator=g) * 3
-    model.fit_normalizers(obs, torch.rand(700, 4, generator=g), obs + torch.randn(700, 21, generator=g))
-    model.eval()
-    whole = ("amx-network", "fma-network")
-    cases = [(dtype, path) for dtype in (None, torch.bfloat16) for path in (*whole, "bmm")
-             if path in model.available_inference_paths(dtype or torch.float32)]
+    model, _, whole, cases = _rollout_model(g)
     H, M, P = 4, 13, 10
 
     def reference(s, acts, members, seed, with_noise):
