@@ -165,11 +165,28 @@ def test_bf16_ranking_matches_fp32(path):
     assert rho >= 0.95, rho
 
 
-def test_time_budget_returns_best_so_far():
+def test_time_budget_returns_best_so_far(monkeypatch):
+    """Anytime mode stops before an iteration that would overrun the budget and acts on the best
+    sequence so far. The planner's clock is the test's, moved 12 ms by every candidate evaluation,
+    so the count does not depend on this machine's speed: 4 iterations fit in 50 ms, a fifth would
+    end at 60."""
+    from types import SimpleNamespace
+
+    from torchrl_softae.modules.planners import icem
+
+    clock = [0.0]
+    monkeypatch.setattr(icem, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
     tenv = TransformedEnv(_model_env("optimistic"), Compose(HallucinatedControl(), UncertaintyReward()))
     planner = ICEMPlanner(tenv, planning_horizon=10, optim_steps=50, num_candidates=200, time_budget=0.05)
+    evaluate = planner.evaluate
+
+    def evaluate_taking_12_ms(*args, **kwargs):
+        clock[0] += 0.012
+        return evaluate(*args, **kwargs)
+
+    planner.evaluate = evaluate_taking_12_ms
     out = planner(TensorDict({"observation": torch.randn(3)}, []))
-    assert 1 <= planner.last_info["iterations"] < 50
+    assert planner.last_info["iterations"] == 4
     assert out["action"].shape == (5,)
 
 
