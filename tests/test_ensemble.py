@@ -11,6 +11,7 @@ from torchrl_softae.modules import EnsembleWorldModel, ensemble_std
 from torchrl_softae.modules import ensemble as ensemble_module
 from torchrl_softae.modules import amx_network, fma_network, moments_kernel, silu_kernel
 from torchrl_softae.modules.precision import onednn_bf16_available
+from torchrl_softae.modules.rollouts import is_rollout_key
 from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 
 
@@ -814,6 +815,21 @@ def test_sampled_rollout_matches_the_torch_ops():
                         torch.testing.assert_close(s, s_ref)
                         torch.testing.assert_close(sigma, sigma_ref)
                 assert layouts[0] is layouts[1]
+        # a copy (deepcopy, pickle) leaves the rollouts' layouts behind (their prepared calls read
+        # this model's buffers) and prepares its own, with the same results
+        model.planning_dtype, model.inference_path = None, whole[1] if fma_network.available() else "bmm"
+        for copy_of in (copy.deepcopy, lambda m: pickle.loads(pickle.dumps(m))):
+            twin = copy_of(model)
+            assert any(is_rollout_key(k) for k in model._inference_cache)
+            assert not any(is_rollout_key(k) for k in twin._inference_cache)
+            s0, acts = torch.randn(M, 21, generator=g), torch.rand(H, M, 4, generator=g) * 2 - 1
+            members = torch.randint(5, (M, P), generator=g)
+            mine, theirs = (
+                [(nxt.clone(), sigma.clone()) for nxt, sigma in
+                 m.sampled_rollout(s0, m.normalized_actions(acts), members, generator=torch.Generator().manual_seed(3))]
+                for m in (model, twin))
+            for (s, sigma), (s_twin, sigma_twin) in zip(mine, theirs):
+                assert torch.equal(s, s_twin) and torch.equal(sigma, sigma_twin)
         with pytest.raises(ValueError, match=r"member_index is \(12, 10\) torch.int64, expected \(13, P\)"):
             model.sampled_rollout(s0, model.normalized_actions(acts), members[1:])
         with pytest.raises(ValueError, match=r"member_index outside \[0, 5\)"):

@@ -27,7 +27,7 @@ import torch
 from torchrl_softae.modules import amx_network, fma_network, silu_kernel
 from torchrl_softae.modules.precision import cpu_info, cpu_name, flags_of
 
-__all__ = ["choose", "choices", "cache_path", "cpu_key", "INFERENCE_PATHS"]
+__all__ = ["choose", "choices", "cache_path", "cpu_key", "INFERENCE_PATHS", "WHOLE_NETWORK_KERNELS"]
 
 #: grouped 1x1 convolutions (oneDNN) with the activation as its own kernel, the same with the
 #: activation fused into the convolution (a oneDNN post-op: one pass over the layer's output
@@ -37,6 +37,10 @@ __all__ = ["choose", "choices", "cache_path", "cpu_key", "INFERENCE_PATHS"]
 #: csrc/amx_network.c) or in register blocks, fp32 on AVX-512F or AVX2+FMA and bf16 on AVX512-BF16
 #: (with SiLU, csrc/fma_network.c)
 INFERENCE_PATHS = ("conv", "conv-fused", "bmm", "conv-silu-kernel", "bmm-silu-kernel", "amx-network", "fma-network")
+#: the inference paths that run the whole network in one kernel call, and their kernels
+#: (``kernel.available(dtype)`` says where and in which dtype: AMX bf16; FMA fp32, and bf16 on
+#: AVX512-BF16)
+WHOLE_NETWORK_KERNELS = {"amx-network": amx_network, "fma-network": fma_network}
 _LOCK = threading.RLock()  # re-entrant: a measured candidate may itself make a measured choice
 _MEMORY: dict[str, str] = {}
 
