@@ -78,7 +78,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     #: score deterministic one-particle plans (Mean-AE, SoftAE) through the model's
     #: :meth:`~torchrl_softae.modules.EnsembleWorldModel.deterministic_rollout` (every step's network
     #: input laid out at once, prepared kernel calls where they run); ``False``: the per-step tensor
-    #: loop that stochastic propagation runs (the same values; to compare)
+    #: loop that every other propagation runs (the same values; to compare)
     deterministic_rollouts: bool = True
     #: trajectory sampling with particles (``mode="sample"``) scored through
     #: :meth:`~torchrl_softae.modules.EnsembleWorldModel.sampled_rollout` (laid out once, the
