@@ -411,7 +411,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             eta = eta.reshape(H, B * N, d_s)
         rollout = self.world_model.deterministic_rollout(obs.reshape(B * N, d_s), model_actions.reshape(H, B * N, -1),
                                                          eta)
-        return self._rollout_returns(stack, rollout, entries["action"].reshape(H, B * N, -1)).reshape(B, N, 1, 1)
+        return self._rollout_returns(stack, rollout, entries["action"], (B, N, 1))
 
     def _sampled_returns(self, stack, obs, entries, model_actions, member) -> torch.Tensor:
         """:meth:`_returns_on_tensors` with trajectory sampling, each particle following its member
@@ -429,16 +429,15 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         return self._rollout_returns(stack, rollout, action.expand(H, B, N, P, action.shape[-1]), (B, N, P))
 
     @staticmethod
-    def _rollout_returns(stack, rollout, actions, batch=None) -> torch.Tensor:
-        """The returns ``(*batch, 1)`` of a planning rollout's rows (``batch``: their shape, flat
-        without it) under the actions ``(H, *batch, k)``: every step run first, then each
+    def _rollout_returns(stack, rollout, actions, batch: tuple[int, ...]) -> torch.Tensor:
+        """The returns ``(*batch, 1)`` of a planning rollout's rows (``batch``: their shape) under
+        the actions ``(H, *batch, k)``: every step run first, then each
         transform's reward for all steps in one call (its steps' arguments stacked, ``(H, *batch,
         ...)``; :meth:`~torchrl_softae.modules.planners.PlanningTransform.plan_reward`), summed over
         the horizon. One call instead of one per step between the network calls, where every op ran
         cache-cold (``benchmarks/cold_ops.py``)."""
         trajectory, sigmas = rollout.run()
         H = sigmas.shape[0]
-        batch = tuple(sigmas.shape[1:-1]) if batch is None else tuple(batch)
         trajectory = trajectory.view(H + 1, *batch, -1)
         sigmas = sigmas.view(H, *batch, -1)
         # the model env's own reward, zero: one read-only value for every step and row

@@ -867,9 +867,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
             with_logvar = with_aleatoric and self.probabilistic
             out = self.output_normalizer
             # the bounds and the aleatoric std in the same pass, where the bounds' span allows it
-            bounds = None
-            if with_logvar and bool((self.max_logvar - self.min_logvar).max() < _moments_kernel.MAX_LOGVAR_SPAN):
-                bounds = (self.min_logvar, self.max_logvar)
+            bounds = self._fused_logvar_bounds() if with_logvar else None
             next_state = {} if next_input is None else dict(
                 next_input=next_input, input_loc=norm.loc[:d], input_scale=norm.scale[:d])
             mu, sigma, member_mean, second = _moments_kernel.ensemble_moments(
@@ -894,6 +892,14 @@ class EnsembleWorldModel(TensorDictModuleBase):
         if next_input is not None:
             next_input[:, :d] = self._normalized_states(mu)
         return mu, sigma, member_mean, ale
+
+    def _fused_logvar_bounds(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The log-variance bounds ``(min_logvar, max_logvar)`` where the moments kernel can apply
+        them and form the aleatoric std in its pass (a span below
+        :data:`~.moments_kernel.MAX_LOGVAR_SPAN`), else ``None``."""
+        if bool((self.max_logvar - self.min_logvar).max() < _moments_kernel.MAX_LOGVAR_SPAN):
+            return self.min_logvar, self.max_logvar
+        return None
 
     def predict(
         self, observation: torch.Tensor, action: torch.Tensor, check: bool = True

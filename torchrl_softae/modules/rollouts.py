@@ -140,7 +140,8 @@ def sampled_layout(model, steps: int, rows: int, particles: int, with_noise: boo
     d, d_a = model.observation_dim, model.action_dim
     with_logvar = with_noise and model.probabilistic
     cols = d if (model.probabilistic and not with_logvar) else None
-    wide = with_logvar and not bool((model.max_logvar - model.min_logvar).max() < moments_kernel.MAX_LOGVAR_SPAN)
+    bounds = model._fused_logvar_bounds() if with_logvar else None
+    wide = with_logvar and bounds is None  # the kernel cannot form this aleatoric std
     paths, packed = (None, None) if wide else _rollout_network(model, [rows, rows * particles], cols, device)
     n = rows * particles
 
@@ -159,8 +160,8 @@ def sampled_layout(model, steps: int, rows: int, particles: int, with_noise: boo
         first_raw = torch.empty(model.ensemble_size, rows, width)
         raw = torch.empty(model.ensemble_size, n, width)
         out, norm = model.output_normalizer, model.input_normalizer
-        bounds = (model.min_logvar, model.max_logvar) if with_logvar else None
-        # without aleatoric noise s' is the member's mean: zero noise, read by no step
+        # without aleatoric noise s' is the member's mean: the kernel takes noise as the switch to
+        # the member's next state and, without the log-variance head, never reads it
         zero_noise = None if with_noise else torch.zeros(n, d)
         states, sigmas = layout.trajectory, layout.sigmas
         layout.compiled = []
@@ -371,7 +372,8 @@ class SampledRollout(_PlanningRollout):
             raise ValueError(f"SampledRollout: member_index is {tuple(member_index.shape)} {member_index.dtype}, "
                              f"expected ({M}, P) integers")
         L = model.ensemble_size
-        if member_index.numel() and not (0 <= int(member_index.min()) and int(member_index.max()) < L):
+        lo, hi = torch.aminmax(member_index) if member_index.numel() else (0, 0)
+        if not (0 <= int(lo) and int(hi) < L):
             raise ValueError(f"SampledRollout: member_index outside [0, {L})")
         P = member_index.shape[1]
         self.model, self.particles = model, P
