@@ -33,11 +33,11 @@ heavy.
   ...@torch-moments (--compare-moments) the four icem rows with mu and sigma computed by torch ops
                     (EnsembleWorldModel.fused_moments = False) instead of the one-pass kernel
   ...@torch-randn   (--compare-noise) the four icem rows with every normal draw by torch.randn
+                    (normal_kernel.enabled = False) instead of the counter-based kernel
   ...@step-loop     (--compare-rollout) the four icem rows scored by the per-step tensor loop
                     (EnsembleModelEnv.deterministic_rollouts / sampled_rollouts = False) instead of
                     the model's deterministic (one particle) or sampled (ten) rollout, prepared
                     kernel calls
-                    (normal_kernel.enabled = False) instead of the counter-based kernel
 
 ``--layer-costs`` also times the arm-sized network as the planner runs it, fp32 and bf16 (its
 ratio bounds bf16/fp32 of a plan), and ONE hidden layer (L=5 members, 256 -> 256) at the planner's row counts
