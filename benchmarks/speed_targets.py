@@ -3,6 +3,8 @@
     python benchmarks/speed_targets.py                    # this machine's kind (amx, avx512-bf16 or no-bf16)
     python benchmarks/speed_targets.py --kind amx         # another kind's records
     python benchmarks/speed_targets.py --plot             # also draw them (results/plots/speed_targets-KIND.png)
+    python benchmarks/speed_targets.py --kind amx --runs 2026-12-05-sampled-run1 2026-12-05-sampled-run2
+                                                          # and each value's range over those runs and the record
 
 Reads ``benchmarks/results/planning_speed-KIND.json`` (``planning_speed.py --compare-paths``) and
 ``eval_batch_speed-KIND[-bf16].json`` (``eval_batch_speed.py [--precision bf16]``), and prints one
@@ -15,6 +17,11 @@ rounds, i.e. the value if everything but the network cost nothing (over ``CEMPla
 over our calls; bf16 over fp32: the fp32 calls over the bf16 calls; ms: the calls' time). The targets are the performance
 issue's, in one place (:data:`TARGETS`); nothing is measured here, so the table is exactly what
 the records say. Ratios are of medians; "% of peak" is the record's (best round).
+
+``--runs TAG ...`` adds a column: each value's range over the record and the runs named by their
+file tags (``planning_speed-KIND-TAG.json``, ``eval_batch_speed-KIND[-bf16]-TAG.json``; a run
+without one of those files counts for the targets of the others), so the spread of a set of runs
+of the same code is printed, not copied by hand.
 """
 from __future__ import annotations
 
@@ -62,11 +69,12 @@ def _load(name: str) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
-def measured_rows(kind: str) -> list[tuple]:
+def measured_rows(kind: str, tag: str | None = None) -> list[tuple]:
     """``(target, where, measured, bound at the GEMM peak or None, bound of the network calls alone or
-    None)`` for every target of ``kind`` its records cover."""
+    None)`` for every target of ``kind`` its records cover: the record, or the run of file tag ``tag``."""
+    run = "" if tag is None else f"-{tag}"
     out = []
-    planning = _load(f"planning_speed-{kind}.json")
+    planning = _load(f"planning_speed-{kind}{run}.json")
     if planning is not None:
         peak = best_peaks(planning["peaks_gflops"])
         peak_ratio = peak["bf16"] / peak["fp32"] if "bf16" in peak else None
@@ -95,7 +103,7 @@ def measured_rows(kind: str) -> list[tuple]:
                             1e3 * bf16["seconds_at_peak"] if "seconds_at_peak" in bf16 else None,
                             1e3 * bf16["network_alone_s"] if "network_alone_s" in bf16 else None))
     for suffix, prec in (("", "fp32"), ("-bf16", "bf16")):
-        batched = _load(f"eval_batch_speed-{kind}{suffix}.json")
+        batched = _load(f"eval_batch_speed-{kind}{suffix}{run}.json")
         if batched is None:
             continue
         for env_id, row in batched["envs"].items():
@@ -118,6 +126,28 @@ def checked_rows(kind: str) -> list[tuple]:
             met = None if value is None else (value >= threshold if op == ">=" else value <= threshold)
             out.append((name, op, threshold, where, value, at_peak, alone, met))
     return out
+
+
+def run_ranges(kind: str, tags: list[str]) -> tuple[dict, list[str]]:
+    """``{(target, where): (measured values, network-alone bounds)}`` over the record and the runs of
+    ``tags`` (a run without the bound adds no bound), and the tags that have no record file at all."""
+    values, missing = {}, []
+    for tag in [None, *tags]:
+        rows = measured_rows(kind, tag)
+        if not rows:
+            missing.append(tag)
+        for name, where, value, _, alone in rows:
+            measured, bounds = values.setdefault((name, where), ([], []))
+            measured.append(value)
+            if alone is not None:
+                bounds.append(alone)
+    return values, missing
+
+
+def value_range(values: list[float], fmt) -> str:
+    """``lowest-highest`` in ``fmt``, the unit written once (``1.16-1.19x``)."""
+    lo, hi = fmt(min(values)), fmt(max(values))
+    return lo if lo == hi else f"{lo.removesuffix('x')}-{hi}"
 
 
 def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
@@ -179,29 +209,43 @@ def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--kind", choices=KINDS, default=None, help="default: this machine's kind")
     p.add_argument("--plot", action="store_true", help="also draw the targets and their bounds on one axis")
+    p.add_argument("--runs", nargs="+", default=[], metavar="TAG",
+                   help="also print each value's range over the record and these runs (file tags, e.g. "
+                        "2026-12-05-sampled-run1 for planning_speed-KIND-2026-12-05-sampled-run1.json)")
     args = p.parse_args()
     kind = args.kind or cpu_kind(cpu_description())
     checked = checked_rows(kind)
     if all(row[4] is None for row in checked):
         p.exit(2, f"speed_targets: no records for kind {kind!r} in {RESULTS} (run planning_speed.py and "
                   f"eval_batch_speed.py on such a CPU first)\n")
+    ranges, missing = run_ranges(kind, args.runs) if args.runs else ({}, [])
+    if missing:
+        p.exit(2, f"speed_targets: --runs {' '.join(missing)}: no planning_speed-{kind}-TAG.json or "
+                  f"eval_batch_speed-{kind}[-bf16]-TAG.json in {RESULTS}\n")
     record = _load(f"planning_speed-{kind}.json") or _load(f"eval_batch_speed-{kind}.json")
     print(f"# speed targets on {kind} ({record['cpu']['cpu']}), from benchmarks/results/*-{kind}*.json")
     # the allocator setting moves plan times (benchmarks/allocator_speed.py): say which each record ran with
     names = [f"planning_speed-{kind}.json", f"eval_batch_speed-{kind}.json", f"eval_batch_speed-{kind}-bf16.json"]
     print("allocator: " + "; ".join(f"{n} {r.get('allocator', 'default (recorded before the option)')}"
                                      for n in names if (r := _load(n)) is not None) + "\n")
-    print("| target | where | measured | at the GEMM peak | its network calls alone | met |")
-    print("|---|---|---|---|---|---|")
+    spread = f" range over the record and {len(args.runs)} runs (network calls alone) |" if args.runs else ""
+    print(f"| target | where | measured | at the GEMM peak | its network calls alone | met |{spread}")
+    print("|---|---|---|---|---|---|" + ("---|" if args.runs else ""))
     for name, op, threshold, where, value, at_peak, alone, met in checked:
         if value is None:
-            print(f"| {name} {op} {threshold:g} | {where} | not measured | | | |")
+            print(f"| {name} {op} {threshold:g} | {where} | not measured | | | |" + (" |" if args.runs else ""))
             continue
         fmt = (lambda v: f"{v:.0f}") if "%" in name or "ms" in name else (lambda v: f"{v:.2f}x")
         if fmt(value) == fmt(threshold):  # a value that rounds onto its threshold: show which side it is on
             fmt = (lambda v: f"{v:.1f}") if "%" in name or "ms" in name else (lambda v: f"{v:.3f}x")
         bounds = " | ".join("" if b is None else fmt(b) for b in (at_peak, alone))
-        print(f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bounds} | {'yes' if met else 'no'} |")
+        line = f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bounds} | {'yes' if met else 'no'} |"
+        if args.runs:
+            measured, bounds = ranges[(name, where)]
+            line += f" {value_range(measured, fmt)}" + (f" ({value_range(bounds, fmt)})" if bounds else "")
+            line += "" if len(measured) == len(args.runs) + 1 else f", {len(measured)} runs"
+            line += " |"
+        print(line)
     if args.plot:
         path = RESULTS / "plots" / f"speed_targets-{kind}.png"
         drawable = [r for r in checked if r[4] is not None and (r[5], r[6]) != (None, None)]

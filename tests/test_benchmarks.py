@@ -50,6 +50,25 @@ def test_speed_targets_find_a_measured_row_for_every_target_of_each_recorded_cpu
     assert checked >= 1
 
 
+
+def test_speed_targets_ranges_span_the_record_and_the_named_runs():
+    """``--runs``: each value's range is over the record and the named runs' own files (a run with
+    only a planning record adds nothing to the batched-evaluation rows), and an unknown tag is named."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import speed_targets
+
+    record = {(name, where): value for name, where, value, _, _ in speed_targets.measured_rows("amx")}
+    run1 = {(name, where): value for name, where, value, _, _ in
+            speed_targets.measured_rows("amx", "2026-12-05-sampled-run1")}
+    ranges, missing = speed_targets.run_ranges("amx", ["2026-12-05-sampled-run1", "no-such-run"])
+    assert missing == ["no-such-run"]
+    assert set(ranges) == set(record)
+    for key, (measured, _) in ranges.items():
+        assert measured == [record[key]] + ([run1[key]] if key in run1 else [])
+    assert any(key not in run1 for key in record)  # run 1 has no eval_batch_speed record
+    assert speed_targets.value_range([1.161, 1.19], lambda v: f"{v:.2f}x") == "1.16-1.19x"
+    assert speed_targets.value_range([82.2, 81.9], lambda v: f"{v:.0f}") == "82"
+
 def test_bf16_is_timed_only_where_the_cpu_has_it_natively(monkeypatch, capsys):
     """On a CPU without native bf16 the benchmarks time no bf16 contender (torch's emulation made a
     one-particle arm plan 17.8 s on an AVX2-only EPYC) and ``--precision bf16`` is one line, exit 2."""
