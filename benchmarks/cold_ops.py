@@ -10,7 +10,7 @@ at the arm's 206 rows, bf16 and fp32, as the planner calls it; a 16 MiB elementw
 sleep), the predecessors interleaved in ``--rounds`` rounds, and prints the median over rounds. A
 4-element ``add`` touches almost no data: what it pays after a network call is the cost of its
 code and the interpreter's, evicted by the call. This is why ``EnsembleWorldModel.
-deterministic_rollout`` runs a step as two prepared kernel calls (README, "What the planner
+deterministic_rollout`` runs a step as two prepared kernel calls (benchmarks/README.md, "What the planner
 computes less, and how it runs it"). Writes ``benchmarks/results/cold_ops-KIND.json``.
 """
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """One network call of the arm-sized ensemble on every inference path this machine runs, at the row
 counts planning makes, interleaved: how far each path is from the GEMM peak before a plan adds its
-own work (README, "The whole fp32 network in one call").
+own work (benchmarks/README.md, "The whole fp32 network in one call").
 
     python benchmarks/network_paths_speed.py                 # fp32 and, where native, bf16
     python benchmarks/network_paths_speed.py --rounds 30

@@ -1,5 +1,5 @@
 """Does a plan's time depend on which contender ran just before it? The question behind
-``planning_speed.py``'s shuffled order (README, "Planning speed").
+``planning_speed.py``'s shuffled order (benchmarks/README.md, "The targets").
 
     python benchmarks/order_effect.py [--rounds 15]
 

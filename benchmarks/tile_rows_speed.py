@@ -1,5 +1,5 @@
 """One network call in passes of rows against one pass, at the row counts planning makes: an idea
-tried and not used (README, "Tried and not used").
+tried and not used (benchmarks/README.md, "Tried and not used").
 
     python benchmarks/tile_rows_speed.py                      # freed memory kept, as softae runs
     python benchmarks/tile_rows_speed.py --allocator default  # glibc's malloc as it comes
