@@ -11,7 +11,9 @@ Reads ``benchmarks/results/planning_speed-KIND.json`` (``planning_speed.py --com
 row per target and place: the measured value, the two bounds the same run measured for it where
 the record has them, and whether the target is met. "At the GEMM peak": the computation's ensemble
 FLOPs at the GEMM peak of its dtype (for bf16 over fp32, the ratio of the two peaks), what any
-implementation of the same computation could at best reach on this CPU. "Network calls alone"
+implementation of the same computation could at best reach on this CPU; over ``CEMPlanner``, which
+steps the same model, both planners' FLOPs at the peak, ``CEMPlanner``'s own work outside its
+network calls as measured (``planning_speed.shared_model_bound``). "Network calls alone"
 (``planning_speed.py --network-alone``): the plan's own network calls, replayed alone in the same
 rounds, i.e. the value if everything but the network cost nothing (over ``CEMPlanner``: its plan
 over our calls; bf16 over fp32: the fp32 calls over the bf16 calls; ms: the calls' time). The targets are the performance
@@ -31,7 +33,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-from planning_speed import best_peaks, cpu_description, cpu_kind  # noqa: E402
+from planning_speed import best_peaks, cpu_description, cpu_kind, shared_model_bound  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 KINDS = ("amx", "avx512-bf16", "no-bf16")
@@ -86,7 +88,7 @@ def measured_rows(kind: str, tag: str | None = None) -> list[tuple]:
             for particles, tag in (("10 particles", "full"), ("1 particle", "dedup")):
                 fp32 = rows[f"icem-fp32-{tag}"]
                 out.append((f"{particles} fp32 vs no-grad CEMPlanner", where, fp32["speedup_vs_cem_median"],
-                            fp32.get("max_speedup_vs_cem"),
+                            shared_model_bound(rows["cem-torchrl"], fp32),
                             cem / fp32["network_alone_s"] if "network_alone_s" in fp32 else None))
                 out.append((f"{particles} fp32, % of the fp32 peak", where, 100 * fp32["fraction_of_peak"], None, None))
                 bf16 = rows.get(f"icem-bf16-{tag}")
@@ -129,18 +131,18 @@ def checked_rows(kind: str) -> list[tuple]:
 
 
 def run_ranges(kind: str, tags: list[str]) -> tuple[dict, list[str]]:
-    """``{(target, where): (measured values, network-alone bounds)}`` over the record and the runs of
-    ``tags`` (a run without the bound adds no bound), and the tags that have no record file at all."""
+    """``{(target, where): (measured values, bounds at the GEMM peak, bounds of the network calls
+    alone)}`` over the record and the runs of ``tags`` (a run without a bound adds none), and the
+    tags that have no record file at all."""
     values, missing = {}, []
     for tag in [None, *tags]:
         rows = measured_rows(kind, tag)
         if not rows:
             missing.append(tag)
-        for name, where, value, _, alone in rows:
-            measured, bounds = values.setdefault((name, where), ([], []))
-            measured.append(value)
-            if alone is not None:
-                bounds.append(alone)
+        for name, where, *found in rows:
+            for kept, value in zip(values.setdefault((name, where), ([], [], [])), found):
+                if value is not None:
+                    kept.append(value)
     return values, missing
 
 
@@ -170,7 +172,8 @@ def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
         ax.plot([min(v for v in (m, a, n) if v is not None), right], [y, y], color="0.85", lw=6, zorder=1,
                 solid_capstyle="butt")
         if a is not None:
-            ax.scatter(a, y, marker="|", s=250, color="0.45", zorder=2, label="at the GEMM peak" if y == 0 else None)
+            ax.scatter(a, y, marker="|", s=250, color="0.45", zorder=2,
+                       label="at the GEMM peak (over CEMPlanner: the shared model at it for both)" if y == 0 else None)
         if n is not None:
             ax.scatter(n, y, marker="D", s=40, facecolor="white", edgecolor="tab:blue", zorder=3,
                        label="its network calls alone" if y == 0 else None)
@@ -196,10 +199,9 @@ def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
     ax.set_title(f"Planning-speed targets on {cpu} ({kind}, benchmarks/results/*-{kind}*.json):\n"
                  "measured medians, and the bounds measured in the same run", fontsize=9)
     ax.grid(axis="x", which="both", alpha=0.3)
-    # below the axes: inside, it would cover rows of a short figure
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.08 - 0.4 / (len(rows) + 3)), ncol=2,
-              frameon=False)
-    fig.tight_layout()
+    # below the axis label, in a strip of its own: inside the axes it would cover rows of a short figure
+    fig.legend(*ax.get_legend_handles_labels(), fontsize=7, loc="lower center", ncol=2, frameon=False)
+    fig.tight_layout(rect=(0, 0.55 / fig.get_figheight(), 1, 1))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=130)
     plt.close(fig)
@@ -228,12 +230,13 @@ def main():
     names = [f"planning_speed-{kind}.json", f"eval_batch_speed-{kind}.json", f"eval_batch_speed-{kind}-bf16.json"]
     print("allocator: " + "; ".join(f"{n} {r.get('allocator', 'default (recorded before the option)')}"
                                      for n in names if (r := _load(n)) is not None) + "\n")
-    spread = f" range over the record and {len(args.runs)} runs (network calls alone) |" if args.runs else ""
+    spread = (f" measured, over the record and {len(args.runs)} runs | bounds over them: at the GEMM peak; network "
+              "calls alone |") if args.runs else ""
     print(f"| target | where | measured | at the GEMM peak | its network calls alone | met |{spread}")
-    print("|---|---|---|---|---|---|" + ("---|" if args.runs else ""))
+    print("|---|---|---|---|---|---|" + ("---|---|" if args.runs else ""))
     for name, op, threshold, where, value, at_peak, alone, met in checked:
         if value is None:
-            print(f"| {name} {op} {threshold:g} | {where} | not measured | | | |" + (" |" if args.runs else ""))
+            print(f"| {name} {op} {threshold:g} | {where} | not measured | | | |" + (" | |" if args.runs else ""))
             continue
         fmt = (lambda v: f"{v:.0f}") if "%" in name or "ms" in name else (lambda v: f"{v:.2f}x")
         if fmt(value) == fmt(threshold):  # a value that rounds onto its threshold: show which side it is on
@@ -241,10 +244,10 @@ def main():
         bounds = " | ".join("" if b is None else fmt(b) for b in (at_peak, alone))
         line = f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bounds} | {'yes' if met else 'no'} |"
         if args.runs:
-            measured, bounds = ranges[(name, where)]
-            line += f" {value_range(measured, fmt)}" + (f" ({value_range(bounds, fmt)})" if bounds else "")
-            line += "" if len(measured) == len(args.runs) + 1 else f", {len(measured)} runs"
-            line += " |"
+            measured, peak_bounds, alone_bounds = ranges[(name, where)]
+            runs = "" if len(measured) == len(args.runs) + 1 else f" ({len(measured)} runs)"
+            bounds = "; ".join(value_range(b, fmt) if b else "" for b in (peak_bounds, alone_bounds))
+            line += f" {value_range(measured, fmt)}{runs} | {bounds if bounds != '; ' else ''} |"
         print(line)
     if args.plot:
         path = RESULTS / "plots" / f"speed_targets-{kind}.png"

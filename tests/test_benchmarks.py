@@ -63,7 +63,7 @@ def test_speed_targets_ranges_span_the_record_and_the_named_runs():
     ranges, missing = speed_targets.run_ranges("amx", ["2026-12-05-sampled-run1", "no-such-run"])
     assert missing == ["no-such-run"]
     assert set(ranges) == set(record)
-    for key, (measured, _) in ranges.items():
+    for key, (measured, _, _) in ranges.items():
         assert measured == [record[key]] + ([run1[key]] if key in run1 else [])
     assert any(key not in run1 for key in record)  # run 1 has no eval_batch_speed record
     assert speed_targets.value_range([1.161, 1.19], lambda v: f"{v:.2f}x") == "1.16-1.19x"
