@@ -1,5 +1,6 @@
 """Every benchmark script still runs after the code it measures has moved: each one's ``--help``
 (its imports and argument parser) in one interpreter."""
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -68,6 +69,25 @@ def test_speed_targets_ranges_span_the_record_and_the_named_runs():
     assert any(key not in run1 for key in record)  # run 1 has no eval_batch_speed record
     assert speed_targets.value_range([1.161, 1.19], lambda v: f"{v:.2f}x") == "1.16-1.19x"
     assert speed_targets.value_range([82.2, 81.9], lambda v: f"{v:.0f}") == "82"
+
+
+def test_the_peak_bound_over_cemplanner_speeds_up_the_model_they_share():
+    """Over ``CEMPlanner`` the bound at the GEMM peak puts the shared model at the peak for both:
+    its FLOPs at the peak plus its measured time outside its network calls, over ours at the peak;
+    the targets' rows over ``CEMPlanner`` take it from the record."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import planning_speed
+    import speed_targets
+
+    cem = {"seconds_at_peak": 0.6, "median_s": 0.9, "network_alone_s": 0.8}
+    assert abs(planning_speed.shared_model_bound(cem, {"seconds_at_peak": 0.5}) - 1.4) < 1e-12
+    assert planning_speed.shared_model_bound({"seconds_at_peak": 0.6, "median_s": 0.9}, {"seconds_at_peak": 0.5}) is None
+    record = json.loads((ROOT / "benchmarks" / "results" / "planning_speed-amx.json").read_text())
+    rows = {r["planner"]: r for r in record["rows"] if r["shape"] == "arm58"}
+    expected = planning_speed.shared_model_bound(rows["cem-torchrl"], rows["icem-fp32-full"])
+    (at_peak,) = [b for name, where, _, b, _ in speed_targets.measured_rows("amx")
+                  if name == "10 particles fp32 vs no-grad CEMPlanner" and where.startswith("arm")]
+    assert at_peak == expected and at_peak < rows["icem-fp32-full"]["max_speedup_vs_cem"]
 
 def test_bf16_is_timed_only_where_the_cpu_has_it_natively(monkeypatch, capsys):
     """On a CPU without native bf16 the benchmarks time no bf16 contender (torch's emulation made a
