@@ -230,8 +230,8 @@ def main():
     names = [f"planning_speed-{kind}.json", f"eval_batch_speed-{kind}.json", f"eval_batch_speed-{kind}-bf16.json"]
     print("allocator: " + "; ".join(f"{n} {r.get('allocator', 'default (recorded before the option)')}"
                                      for n in names if (r := _load(n)) is not None) + "\n")
-    spread = (f" measured, over the record and {len(args.runs)} runs | bounds over them: at the GEMM peak; network "
-              "calls alone |") if args.runs else ""
+    spread = (" measured over the runs (how many, the record included) | bounds over them: at the GEMM peak; "
+              "network calls alone |") if args.runs else ""
     print(f"| target | where | measured | at the GEMM peak | its network calls alone | met |{spread}")
     print("|---|---|---|---|---|---|" + ("---|---|" if args.runs else ""))
     for name, op, threshold, where, value, at_peak, alone, met in checked:
@@ -245,9 +245,8 @@ def main():
         line = f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bounds} | {'yes' if met else 'no'} |"
         if args.runs:
             measured, peak_bounds, alone_bounds = ranges[(name, where)]
-            runs = "" if len(measured) == len(args.runs) + 1 else f" ({len(measured)} runs)"
             bounds = "; ".join(value_range(b, fmt) if b else "" for b in (peak_bounds, alone_bounds))
-            line += f" {value_range(measured, fmt)}{runs} | {bounds if bounds != '; ' else ''} |"
+            line += f" {value_range(measured, fmt)} ({len(measured)}) | {bounds if bounds != '; ' else ''} |"
         print(line)
     if args.plot:
         path = RESULTS / "plots" / f"speed_targets-{kind}.png"
