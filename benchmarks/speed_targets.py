@@ -20,10 +20,10 @@ over our calls; bf16 over fp32: the fp32 calls over the bf16 calls; ms: the call
 issue's, in one place (:data:`TARGETS`); nothing is measured here, so the table is exactly what
 the records say. Ratios are of medians; "% of peak" is the record's (best round).
 
-``--runs TAG ...`` adds a column: each value's range over the record and the runs named by their
-file tags (``planning_speed-KIND-TAG.json``, ``eval_batch_speed-KIND[-bf16]-TAG.json``; a run
-without one of those files counts for the targets of the others), so the spread of a set of runs
-of the same code is printed, not copied by hand.
+``--runs TAG ...`` adds two columns: each value's range, and its bounds' ranges, over the record and
+the runs named by their file tags (``planning_speed-KIND-TAG.json``,
+``eval_batch_speed-KIND[-bf16]-TAG.json``; a run without one of those files counts for the targets
+of the others), so the spread of a set of runs of the same code is printed, not copied by hand.
 """
 from __future__ import annotations
 
@@ -71,10 +71,11 @@ def _load(name: str) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
-def measured_rows(kind: str, tag: str | None = None) -> list[tuple]:
+def measured_rows(kind: str, run_tag: str | None = None) -> list[tuple]:
     """``(target, where, measured, bound at the GEMM peak or None, bound of the network calls alone or
-    None)`` for every target of ``kind`` its records cover: the record, or the run of file tag ``tag``."""
-    run = "" if tag is None else f"-{tag}"
+    None)`` for every target of ``kind`` its records cover: the record, or the run of file tag
+    ``run_tag``."""
+    run = "" if run_tag is None else f"-{run_tag}"
     out = []
     planning = _load(f"planning_speed-{kind}{run}.json")
     if planning is not None:
