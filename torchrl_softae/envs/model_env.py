@@ -381,18 +381,17 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             return self._sampled_returns(stack, obs, entries, model_actions, member)
         ret = torch.zeros(B, N, P, 1, device=obs.device)
         for h in range(H):
-            step = {k: v[h] for k, v in entries.items()}
+            step = {k: v[h] for k, v in entries.items()}  # (B, N, 1, k): a candidate's, for its particles
+            particles = {k: v.expand(B, N, P, v.shape[-1]) for k, v in step.items()}
             if h == 0 and P > 1:
                 # a candidate's particles share its start state and first action: one model call
                 # serves them all (1 / H of a stochastic plan's network work)
                 nxt, sigma = self._propagate(obs[..., :1, :], model_actions[0], step.get("eta"), member, P)
-                step = {k: v.expand(B, N, P, v.shape[-1]) for k, v in step.items()}
             else:
-                step = {k: v.expand(B, N, P, v.shape[-1]) for k, v in step.items()}
-                nxt, sigma = self._propagate(obs, model_actions[h].expand(B, N, P, -1), step.get("eta"), member)
+                nxt, sigma = self._propagate(obs, model_actions[h].expand(B, N, P, -1), particles.get("eta"), member)
             reward = torch.zeros_like(ret)
             for t in stack:
-                reward = t.plan_reward(obs, step["action"], nxt, sigma, reward)
+                reward = t.plan_reward(obs, particles["action"], nxt, sigma, reward)
             ret += reward.reshape(ret.shape).float()
             obs = nxt
         return ret
