@@ -77,24 +77,35 @@ class EnsembleLoss(LossModule):
         act = tensordict.get(k.action)
         nxt = tensordict.get(k.next_observation)
         L = model.ensemble_size
-        if tensordict.batch_dims == 2 and tensordict.batch_size[0] == L:
-            per_member = True
-        elif tensordict.batch_dims == 1:
-            per_member = False
-        else:
+        if not (tensordict.batch_dims == 2 and tensordict.batch_size[0] == L or tensordict.batch_dims == 1):
             raise ValueError(
                 f"EnsembleLoss: batch size {tuple(tensordict.batch_size)}, expected (B,) or (L={L}, B)"
             )
         model._check(obs, act)
-        target = model.normalized_target(obs, nxt)
-        mean, logvar = model.normalized_members(obs, act)
-        if not per_member:
+        loss, mse = self.normalized_loss(model.network_input(obs, act), model.normalized_target(obs, nxt))
+        return TensorDict({"loss_model": loss, "mse": mse.detach()}, batch_size=[])
+
+    def normalized_loss(self, inputs: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The loss on the network's own input and target, with no tensordict on the way.
+
+        Args:
+            inputs: ``(L, B, d_s + d_a)`` one minibatch per member, or ``(B, d_s + d_a)`` shared,
+                as :meth:`EnsembleWorldModel.network_input` makes them.
+            target: ``(L, B, d_s)`` or ``(B, d_s)``, :meth:`EnsembleWorldModel.normalized_target`.
+
+        Returns:
+            ``loss_model`` (a scalar: the members' mean losses summed) and ``mse`` (the mean
+            normalized squared error over members). Under ``torch.autocast`` only the network's
+            matmuls run in the reduced dtype: its output is cast to fp32 before the loss.
+        """
+        model = self.world_model
+        L = model.ensemble_size
+        mean, logvar = model.network(inputs)
+        if target.dim() == 2:
             target = target.expand(L, *target.shape)
         sq = (mean - target).square()
         mse = sq.mean()
         if self.loss_type == "mse":
-            loss = sq.mean(dim=(1, 2)).sum()
-        else:
-            loss = (sq * torch.exp(-logvar) + logvar).mean(dim=(1, 2)).sum()
-            loss = loss + self.logvar_bound_coef * (model.max_logvar.sum() - model.min_logvar.sum())
-        return TensorDict({"loss_model": loss, "mse": mse.detach()}, batch_size=[])
+            return sq.mean(dim=(1, 2)).sum(), mse
+        loss = (sq * torch.exp(-logvar) + logvar).mean(dim=(1, 2)).sum()
+        return loss + self.logvar_bound_coef * (model.max_logvar.sum() - model.min_logvar.sum()), mse

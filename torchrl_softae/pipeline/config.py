@@ -21,6 +21,7 @@ __all__ = [
 ]
 
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS
+from torchrl_softae.objectives.training import TRAINING_PRECISIONS
 from torchrl_softae.envs.transforms.hallucinated_control import DEFAULT_BETA
 from torchrl_softae.pipeline.methods import METHOD_NAMES as METHODS, get_method
 
@@ -49,6 +50,8 @@ class TrainConfig:
     epochs: int = 50
     max_grad_steps: int = 5000
     val_fraction: float = 0.1
+    # the network's matmuls: bf16 where it measures faster here (EnsembleTrainer's precision)
+    precision: str = "auto"
 
 
 @dataclass
@@ -188,6 +191,8 @@ class ExploreConfig:
         if method.trains_policy and self.task is not None and entry.tasks[self.task].instantiate is not None:
             raise ConfigError(f"task {self.task!r} is a family of targets: a SAC policy needs one fixed task "
                               f"(choose one of {', '.join(t for t in tasks if entry.tasks[t].instantiate is None)})")
+        if self.train.precision not in TRAINING_PRECISIONS:
+            raise ConfigError(f"train.precision={self.train.precision!r}; valid: {', '.join(TRAINING_PRECISIONS)}")
         if not 0 <= self.train.val_fraction < 1:
             raise ConfigError(f"train.val_fraction={self.train.val_fraction!r}; expected in [0, 1)")
         return self

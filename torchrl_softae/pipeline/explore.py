@@ -115,7 +115,8 @@ class Explorer:
         model = build_world_model(cfg.model, d_s, d_a)
         trainer = EnsembleTrainer(
             EnsembleLoss(model), lr=cfg.train.lr, batch_size=cfg.train.batch_size, epochs=cfg.train.epochs,
-            max_grad_steps=cfg.train.max_grad_steps, val_fraction=cfg.train.val_fraction, progress=self.progress,
+            max_grad_steps=cfg.train.max_grad_steps, val_fraction=cfg.train.val_fraction,
+            precision=cfg.train.precision, progress=self.progress,
         )
         method = get_method(cfg.method)
         learner = (build_policy_learner(cfg.policy, model, env.action_spec, self.task, method.propagation, cfg.beta,
@@ -179,7 +180,7 @@ class Explorer:
                 elif self.echo is not None:
                     self.echo(f"episode {n + 1}/{cfg.episodes}: {row['transitions']} transitions, held-out normalized MSE "
                               f"{row['heldout_nmse']:.4g}, coverage {row['coverage']:.3f}, collect {row['collect_seconds']:.0f} s, "
-                              f"train {row['train_seconds']:.0f} s"
+                              f"train {row['train_seconds']:.0f} s ({row['train_precision']})"
                               + (f", SAC {row['policy_seconds']:.0f} s" if "policy_seconds" in row else ""))
             if bar is not None:
                 bar.close()
@@ -248,6 +249,7 @@ class Explorer:
             "train_loss": report.train_loss[-1] if report.train_loss else float("nan"),
             "val_mse": report.final_val_mse,
             "grad_steps": report.grad_steps,
+            "train_precision": report.precision,
             "coverage": coverage(self.entry, stored, bounds),
             "episode_env_reward": float(data["next", "reward"].sum()),
             **accuracy(model),
