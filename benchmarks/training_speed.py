@@ -12,6 +12,11 @@ interleaved round by round: median and best ms per gradient step, the share of t
 wall-clock in each part the trainer labels (batch draw, forward and loss, backward, optimizer,
 validation, normalizers). And the bound that explains the ratio: the step's GEMMs alone (torch's
 batched matmuls at the step's shapes) plus the fused Adam step alone, per dtype.
+
+``--stacked-seeds S`` (default 2; 0 skips it) times what training S seeds' ensembles as one
+ensemble of S x L members in one process could save per seed: one fit of the stacked ensemble
+against S fits of one ensemble, interleaved, on the same threads. It is an upper bound: stacking
+for real would also need each seed's own log-variance bounds and minibatch order.
 """
 from __future__ import annotations
 
@@ -110,12 +115,40 @@ def _median_ms(fn, repeats: int, calls: int = 50) -> float:
     return statistics.median(rounds)
 
 
+def stacked_seeds(args, data) -> dict:
+    """ms per seed per gradient step: S seeds' ensembles stacked into one of S x L members against
+    one ensemble (run S times), per dtype, interleaved; the saving is the stacked speed-up."""
+    S = args.stacked_seeds
+    d_s, d_a = args.dims
+    out = {}
+    for name in PRECISIONS:
+        one = EnsembleTrainer(EnsembleLoss(EnsembleWorldModel(d_s, d_a)), max_grad_steps=args.steps, precision=name)
+        stack = EnsembleTrainer(EnsembleLoss(EnsembleWorldModel(d_s, d_a, ensemble_size=S * one.model.ensemble_size)),
+                                max_grad_steps=args.steps, precision=name)
+        for t in (one, stack):
+            t.fit(data)
+        times = {"one": [], "stacked": []}
+        for _ in range(args.rounds):
+            t0 = time.perf_counter()
+            one.fit(data)
+            times["one"].append(1e3 * (time.perf_counter() - t0) / args.steps)
+            t0 = time.perf_counter()
+            stack.fit(data)
+            times["stacked"].append(1e3 * (time.perf_counter() - t0) / args.steps / S)
+        out[name] = {k: {"median_ms": statistics.median(v), "best_ms": min(v)} for k, v in times.items()}
+        out[name]["speedup_median"] = out[name]["one"]["median_ms"] / out[name]["stacked"]["median_ms"]
+        print(f"{S} seeds stacked, {name}: {out[name]['stacked']['median_ms']:.2f} ms per seed per step against "
+              f"{out[name]['one']['median_ms']:.2f} ms alone (median; {out[name]['speedup_median']:.2f}x per seed)")
+    return out
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--dims", type=int, nargs=2, default=[58, 12], metavar=("D_S", "D_A"))
     p.add_argument("--steps", type=int, default=250, help="gradient steps per fit")
     p.add_argument("--rounds", type=int, default=7, help="interleaved rounds (at least 5)")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--stacked-seeds", type=int, default=2, help="seeds stacked into one ensemble (0: skip)")
     p.add_argument("--out", default=None, help="write the result JSON here")
     args = p.parse_args()
     for name, low in (("steps", 1), ("rounds", 5), ("threads", 1)):
@@ -168,6 +201,8 @@ def main():
           f"master weights and optimizer state, and {rows['fp32']['best_ms'] / floor['bf16']:.2f}x against "
           "today's fp32 step")
 
+    stacked = stacked_seeds(args, data) if args.stacked_seeds > 1 else None
+
     profiles = {}
     for k, t in trainers.items():
         profiles[k] = profile_fit(t, data)
@@ -182,6 +217,7 @@ def main():
             "dims": [d_s, d_a], "steps": args.steps, "step_mflop": flops / 1e6, "peaks_gflops": peak,
             "ms_per_step": ms, "rows": rows, "bf16_speedup": ratio,
             "auto": "bf16" if auto == torch.bfloat16 else "fp32", "alone_ms": alone, "profiles": profiles,
+            "stacked_seeds": stacked,
         }, indent=1))
 
 

@@ -43,6 +43,8 @@ def test_two_episode_explore_writes_buffer_checkpoint_logs(tmp_path, method):
     assert [r["episode"] for r in rows] == [0, 1]
     assert (tmp_path / "metrics.csv").read_text().startswith("collect_seconds")
     assert all(r["heldout_nmse"] > 0 and 0 < r["coverage"] <= 1 for r in rows)
+    # the dtype training ran in (train.precision=auto, resolved once) is in every row and the checkpoint
+    assert {r["train_precision"] for r in rows} == {state["trainer"]["precision"]} <= {"fp32", "bf16"}
     rb = run.load_replay_buffer(state)
     assert rb.storage[:60]["observation"].shape == (60, 3)
 
