@@ -410,7 +410,10 @@ class EnsembleWorldModel(TensorDictModuleBase):
             *hidden, last = self.layers  # (unpacked: slicing a ModuleList builds a new module)
             for layer in hidden:
                 x = self.activation(layer(x))
-            return last(x)
+            # The output head (mean and log-variance) stays in the weights' dtype under autocast:
+            # in bf16 its rounding cost validation NLL on the arm (benchmarks/training_precision.py).
+            with torch.autocast(x.device.type, enabled=False):
+                return last(x.to(last.weight.dtype))
         lowp = self.planning_dtype or torch.float32
         cols = None if (with_logvar or not self.probabilistic) else d  # both heads in one matmul
         path = self._inference_path(x, lowp, cols) if x.dim() == 2 else "bmm"

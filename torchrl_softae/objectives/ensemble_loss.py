@@ -95,8 +95,8 @@ class EnsembleLoss(LossModule):
 
         Returns:
             ``loss_model`` (a scalar: the members' mean losses summed) and ``mse`` (the mean
-            normalized squared error over members). Under ``torch.autocast`` only the network's
-            matmuls run in the reduced dtype: its output is cast to fp32 before the loss.
+            normalized squared error over members). Under ``torch.autocast`` only the hidden
+            layers' matmuls run in the reduced dtype: the output head and the loss run in fp32.
         """
         model = self.world_model
         L = model.ensemble_size

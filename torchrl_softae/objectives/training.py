@@ -123,8 +123,8 @@ class EnsembleTrainer:
             one per elementwise op; the same update up to float rounding). ``None`` (default):
             fused where torch has it for the model's device (CPU, CUDA).
         precision (str): the dtype of the network's matmuls, one of :data:`TRAINING_PRECISIONS`:
-            ``"fp32"`` (default), ``"bf16"`` (``torch.autocast``: bf16 matmuls, fp32 master weights,
-            loss, normalizers and optimizer state) or ``"auto"`` (bf16 where it measures faster for
+            ``"fp32"`` (default), ``"bf16"`` (``torch.autocast``: the hidden layers' matmuls in bf16;
+            the output head, master weights, loss, normalizers and optimizer state in fp32) or ``"auto"`` (bf16 where it measures faster for
             this model here, :func:`resolve_training_dtype`). Resolved once, at the first
             :meth:`fit`, and kept in :meth:`state_dict`, so a resumed run trains as it began.
         progress (bool): show a tqdm bar.
