@@ -95,18 +95,51 @@ def _check_sweep(tmp_path, root, capsys):
 
 
 @pytest.mark.skipif(not HAS_RAY, reason="Ray is not installed (pip install 'torchrl-softae[ray]')")
-def test_ray_sweep_runs_trials_concurrently_and_resumes_a_killed_one(tmp_path, capsys, monkeypatch):
-    monkeypatch.setenv("SOFTAE_EXIT_AFTER_EPISODE", "2:softae-b2-s1")
-    monkeypatch.setenv("HOME", str(tmp_path / "home"))  # nothing may be left in the real home folder
+def test_ray_sweep_runs_trials_concurrently_resumes_a_killed_one_and_prints_only_our_lines(tmp_path, capsys):
+    """`softae sweep` as a user runs it: its terminal shows our lines only (one per episode, evaluation,
+    failed attempt and trial), Ray's output lands in ROOT/ray.log, and no dashboard process starts."""
+    import os
+    import time
+
     f = _write(tmp_path)
     root = tmp_path / "runs"
-    assert main(["sweep", str(f), "--root", str(root), "--cpus-per-trial", "1"]) == 0
-    out = capsys.readouterr().out
-    assert "engine: Ray" in out and "embedded, 2 CPUs" in out
+    env = {**os.environ, "SOFTAE_EXIT_AFTER_EPISODE": "2:softae-b2-s1",
+           "HOME": str(tmp_path / "home")}  # nothing may be left in the real home folder
+    proc = subprocess.Popen([sys.executable, "-m", "torchrl_softae.pipeline.cli", "sweep", str(f), "--root", str(root),
+                             "--cpus-per-trial", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)
+    dashboards = set()
+    while proc.poll() is None:  # Ray's dashboard, if anything started it, is a process of its own
+        ps = subprocess.run(["ps", "-eo", "pid,args"], capture_output=True, text=True).stdout
+        dashboards |= {ln for ln in ps.splitlines() if "dashboard/dashboard.py" in ln}
+        time.sleep(0.5)
+    out, err = proc.communicate()
+    assert proc.returncode == 0, err
+    assert not dashboards, dashboards
+    assert err == ""
+    assert "engine: Ray" in out and "embedded, 2 CPUs" in out and f"Ray's own output in {root / 'ray.log'}" in out
     _check_progress(out)
-    monkeypatch.delenv("SOFTAE_EXIT_AFTER_EPISODE")
+    ours = ("sweep ", "softae explore ", "engine: ", "trial Pendulum-v1/")
+    assert all(ln.startswith(ours) for ln in out.splitlines() if ln.strip()), out
+    failed = [ln for ln in out.splitlines() if ln.startswith("trial Pendulum-v1/softae-b2-s1 exit code")]
+    assert len(failed) == 1 and "(attempt 1); retrying: it resumes from its run dir" in failed[0], out
+    assert "Traceback" not in out and (root / "ray.log").stat().st_size > 0
     _check_sweep(tmp_path, root, capsys)
     assert not (tmp_path / "home" / ".ray").exists() or not any((tmp_path / "home" / ".ray").rglob("*token*"))
+
+
+def test_bad_ray_targets_are_one_line_before_any_trial(tmp_path, capsys):
+    f = _write(tmp_path)
+    assert main(["sweep", str(f), "--root", str(tmp_path / "runs"), "--address", "not an address",
+                 "--storage", str(tmp_path / "s")]) == 2
+    assert capsys.readouterr().err.strip() == ("softae: error: --address 'not an address': expected HOST:PORT, "
+                                               "ray://HOST:PORT or auto")
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    assert main(["sweep", str(f), "--root", str(tmp_path / "runs"), "--storage", str(blocked / "sub")]) == 2
+    assert capsys.readouterr().err.strip().startswith(f"softae: error: --storage '{blocked / 'sub'}': expected a "
+                                                      "folder this process can write")
+    assert not (tmp_path / "runs").exists()
 
 
 def test_local_processes_sweep_resumes_a_killed_trial(tmp_path, capsys, monkeypatch):

@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+from pathlib import Path
 
 from torchrl_softae.pipeline.arguments import PRESETS, available_cores, run_dir_for  # noqa: F401 (public)
 from torchrl_softae.pipeline.arguments import add_explore_args as _add_explore_args
@@ -128,13 +130,14 @@ def cmd_plot(args) -> int:
 
 def cmd_sweep(args) -> int:
     from torchrl_softae.pipeline.config import ConfigError
-    from torchrl_softae.pipeline.sweep import expand, load_sweep, run_local, run_ray, trial_status
+    from torchrl_softae.pipeline.sweep import check_ray_target, expand, load_sweep, run_local, run_ray, trial_status
 
     if args.address and not args.storage:
         raise ConfigError("--address joins a Ray cluster: pass --storage PATH on a filesystem every node shares "
                           "(run dirs and Tune's results must be visible to all of them)")
     if args.cpus_per_trial < 1 or (args.jobs is not None and args.jobs < 1) or args.max_failures < 0:
         raise ConfigError("--cpus-per-trial and --jobs take a positive number, --max-failures a number >= 0")
+    check_ray_target(args.address, args.storage)
     spec = load_sweep(args.file)
     root = args.root or (os.path.join(args.storage, "runs") if args.storage else "runs")
     trials, dropped = expand(spec, root)
@@ -153,7 +156,8 @@ def cmd_sweep(args) -> int:
         raise ConfigError("--address needs Ray: pip install 'torchrl-softae[ray]' (and no --jobs)")
     if use_ray:
         final = run_ray(todo, args.cpus_per_trial, args.max_failures, address=args.address, storage=args.storage,
-                        num_cpus=None if args.address else max(available_cores(), args.cpus_per_trial))
+                        num_cpus=None if args.address else max(available_cores(), args.cpus_per_trial),
+                        log_file=None if args.verbose else Path(root) / "ray.log", dashboard=args.dashboard)
     else:
         jobs = args.jobs or max(1, available_cores() // args.cpus_per_trial)
         print(f"engine: local processes ({'Ray is not installed; ' if args.jobs is None else ''}{jobs} at a time, "
@@ -275,6 +279,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-failures", type=int, default=2, help="retries of a crashed run (it resumes); default 2")
     p.add_argument("--address", default=None, help="join a Ray cluster (HOST:PORT or auto) instead of an embedded Ray")
     p.add_argument("--storage", default=None, help="a path every cluster node shares (required with --address)")
+    p.add_argument("--verbose", action="store_true",
+                   help="Ray's own logs, tables and stack traces on the terminal too (default: in ROOT/ray.log)")
+    p.add_argument("--dashboard", action="store_true", help="start Ray's dashboard (embedded Ray only; default none)")
     p.set_defaults(func=cmd_sweep)
 
     p = sub.add_parser("report", help="the paper's tables and plots from a folder of runs (a sweep or runs by hand)")
@@ -314,13 +321,27 @@ def main(argv: list[str] | None = None) -> int:
     keep_freed_memory()  # planners allocate large tensors at every model step: reuse, not page faults
     from torchrl_softae.envs.robots.rendering import RenderingUnavailable
     from torchrl_softae.pipeline.config import ConfigError
+    from torchrl_softae.pipeline.guards import RunLocked, Stopped, write_failure
     from torchrl_softae.pipeline.runs import CheckpointError
 
+    # past a file-size limit (RLIMIT_FSIZE) a write fails with EFBIG instead of killing the process
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     try:
         return args.func(args)
-    except (ConfigError, CheckpointError, FileNotFoundError, RenderingUnavailable) as e:
+    except (ConfigError, CheckpointError, FileNotFoundError, RenderingUnavailable, RunLocked) as e:
         print(f"softae: error: {e}", file=sys.stderr)
         return 2
+    except Stopped as e:
+        where = (f" at episode {e.done + 1} of {e.total} ({e.done} complete and saved)"
+                 if getattr(e, "total", None) is not None and e.done < e.total else "")
+        print(f"softae: stopped by {e}{where}; rerun the same command to resume", file=sys.stderr)
+        return e.exit_code
+    except OSError as e:
+        line = write_failure(e)
+        if line is None:
+            raise
+        print(f"softae: error: {line}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

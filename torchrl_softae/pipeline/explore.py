@@ -29,7 +29,8 @@ from torchrl_softae.pipeline.data import (ModelAccuracy, coverage, episode_seed,
 from torchrl_softae.pipeline.evaluate import zero_shot
 from torchrl_softae.pipeline.methods import get_method
 from torchrl_softae.pipeline.policy import build_policy_learner
-from torchrl_softae.pipeline.runs import CheckpointError, RunDir, exit_once_after
+from torchrl_softae.pipeline.guards import RunLock, Stopped, stop_on_signals
+from torchrl_softae.pipeline.runs import CheckpointError, RunDir, exit_once_after, signal_once_at
 
 __all__ = ["Explorer", "explore", "make_real_env", "coverage", "heldout_set", "normalized_mse"]
 
@@ -104,6 +105,17 @@ class Explorer:
             )
 
     def run_exploration(self) -> list[dict]:
+        """Explore into the run dir as its only writer (:class:`~.guards.RunLock`); SIGTERM or
+        SIGINT stop it at once, leaving the last complete episode (:class:`~.guards.Stopped`, with
+        ``done`` and ``total`` episodes set), and the same command resumes it."""
+        with RunLock(self.run.path, note=self.echo or print), stop_on_signals():
+            try:
+                return self._run_exploration()
+            except Stopped as e:
+                e.done, e.total = self.run.saved_episodes, self.cfg.episodes
+                raise
+
+    def _run_exploration(self) -> list[dict]:
         cfg = self.cfg
         wandb_id = self._check_config() or uuid.uuid4().hex[:12]
         self.run.write_json(self.run.config_path, {"config": cfg.to_dict(), "wandb_id": wandb_id})
@@ -137,6 +149,7 @@ class Explorer:
                 raise CheckpointError(f"checkpoint does not fit this model ({e})") from None
             history = state["history"]
             start = state["episode"] + 1
+            self.run.write_logs(history)  # logs a full disk left behind the checkpoint catch up
             rb = self.run.load_replay_buffer(state, capacity)
             if self.announce_resume or self.echo is not None:
                 what = (f"resuming {self.run.path} at episode {start + 1} of {cfg.episodes}" if start < cfg.episodes
@@ -222,12 +235,14 @@ class Explorer:
             collector.shutdown(close_env=False)
         if step_bar is not None:
             step_bar.close()
+        signal_once_at("collect", n + 1, self.run.path)
         data = data.reshape(-1)
         keys = {"observation", *self.entry.projection_keys}
         rb.extend(data.select(*keys, "action", *(("next", k) for k in keys), ("next", "reward"),
                               ("next", "done"), ("next", "env_fault"), strict=False).cpu())
         t_collect = time.perf_counter() - t0
 
+        signal_once_at("train", n + 1, self.run.path)
         t1 = time.perf_counter()
         report = trainer.fit(rb, generator=torch.Generator().manual_seed(s))
         t_train = time.perf_counter() - t1

@@ -17,7 +17,7 @@ import torch
 
 from torchrl_softae.pipeline.methods import METHOD_NAMES, label_order, row_labels
 from torchrl_softae.pipeline.report import is_finished, read_archive
-from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, run_dirs_below
+from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, atomic_savefig, run_dirs_below
 from torchrl_softae.tasks.base import metric_label
 
 __all__ = ["plot_run", "plot_comparison", "plot_report", "plot_path", "coverage_heatmaps"]
@@ -35,7 +35,7 @@ def _plt():
 def _save(fig, path: Path, rect=(0, 0, 1, 1)) -> Path:
     """``rect``: the part of the figure the axes may fill (room for a figure legend below)."""
     fig.tight_layout(rect=rect)
-    fig.savefig(path, dpi=120)
+    atomic_savefig(fig, path, dpi=120)
     _plt().close(fig)
     return path
 
@@ -85,7 +85,7 @@ def coverage_heatmaps(counts: dict, edges, axis_labels, title: str, path: Path,
         axes[0][0].legend(fontsize=7, loc="lower left")
     fig.suptitle(title, fontsize=11)
     fig.colorbar(mesh, ax=axes[0].tolist(), label=unit, fraction=0.04, pad=0.02)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
+    atomic_savefig(fig, path, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return path
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from torchrl_softae.pipeline.methods import label_order, row_labels
-from torchrl_softae.pipeline.runs import POLICIES_DIR, CheckpointError, RunDir, run_dirs_below
+from torchrl_softae.pipeline.runs import POLICIES_DIR, CheckpointError, RunDir, atomic_write_text, run_dirs_below
 from torchrl_softae.tasks.base import metric_label
 
 __all__ = ["archived_runs", "collect", "is_finished", "read_archive", "report"]
@@ -211,15 +211,16 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
     text = "\n".join(md)
     root.mkdir(parents=True, exist_ok=True)
     md_path, json_path = root / "report.md", root / "report.json"
-    md_path.write_text(text)
+    atomic_write_text(md_path, text)
     summary = ("run_dir", "method", "seed", "episodes_done", "episodes_target")
     # every run's history and evaluations too: a committed report keeps what each run measured
     # when its run dir (checkpoints, replay dumps) is gone
     archive = [{**{k: r[k] for k in summary}, "run_dir": str(Path(r["run_dir"]).relative_to(root)),
                 "env": r["env"], "config": r["config"], "history": r["history"], "evals": r["evals"],
                 "policies": r["policies"]} for r in runs]
-    json_path.write_text(json.dumps({"tables": tables, "unfinished": [{k: r[k] for k in summary} for r in unfinished],
-                                     "runs": archive}, indent=1, default=float))
+    atomic_write_text(json_path, json.dumps({"tables": tables, "unfinished": [{k: r[k] for k in summary}
+                                                                             for r in unfinished],
+                                             "runs": archive}, indent=1, default=float))
     written = []
     if plots and finished and any(r.get("archived") for r in finished):
         from torchrl_softae.pipeline.plots import plot_report

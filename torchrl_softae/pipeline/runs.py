@@ -19,32 +19,55 @@ then older dumps are deleted. A kill at any point leaves the previous checkpoint
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
 import os
 import shutil
+import signal
 from pathlib import Path
 
 import torch
 from torchrl.data import LazyMemmapStorage, ReplayBuffer
 
-__all__ = ["CheckpointError", "RunDir", "atomic_write_text", "atomic_torch_save", "run_dirs_below", "POLICIES_DIR",
-           "exit_once_after", "REFERENCES_FILE"]
+from torchrl_softae.pipeline.guards import critical
+
+__all__ = ["CheckpointError", "RunDir", "atomic_write_text", "atomic_torch_save", "atomic_savefig", "run_dirs_below", "POLICIES_DIR",
+           "exit_once_after", "signal_once_at", "SIGNAL_ENV", "REFERENCES_FILE"]
 
 CHECKPOINT_FORMAT = 1
 
 
 def _atomic_write(path: Path, write) -> None:
     """``write(file)`` into a temporary sibling, flush it to disk, then ``os.replace`` it onto
-    ``path``: a reader (or a resumed run) sees the old file or the new one, never half of one."""
+    ``path``: a reader (or a resumed run) sees the old file or the new one, never half of one. A
+    failed write (a full disk) removes the temporary file and raises ``OSError`` naming ``path``."""
     path = Path(path)
     tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except (OSError, RuntimeError) as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        cause = _os_error(e)
+        if cause is None:
+            raise
+        raise OSError(cause.errno, cause.strerror, str(path)) from e
+
+
+def _os_error(e: BaseException) -> OSError | None:
+    """``e``, or the ``OSError`` it was raised while handling: ``torch.save`` turns a failed write
+    into a ``RuntimeError`` of its zip writer when it closes the file."""
+    while e is not None:
+        if isinstance(e, OSError):
+            return e
+        e = e.__cause__ or e.__context__
+    return None
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -53,6 +76,12 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 def atomic_torch_save(obj, path: Path) -> None:
     _atomic_write(path, lambda f: torch.save(obj, f))
+
+
+def atomic_savefig(fig, path: Path, **kwargs) -> None:
+    """``fig.savefig`` through :func:`_atomic_write`: a failed write never replaces a good plot."""
+    path = Path(path)
+    _atomic_write(path, lambda f: fig.savefig(f, format=path.suffix.lstrip(".") or "png", **kwargs))
 
 
 #: inside a run dir: the task policies trained on its model (``softae policy``), not runs themselves
@@ -83,6 +112,25 @@ def exit_once_after(env_var: str, count: int, folder: Path, what: str) -> None:
         os._exit(17)
 
 
+#: test hook (:func:`signal_once_at`): ``SOFTAE_SIGNAL_AT=POINT:K`` sends this process SIGTERM at
+#: ``POINT`` of episode ``K`` (1-based), once per run dir: ``collect`` (the episode's data collected,
+#: not yet stored), ``train`` (stored, the model not yet trained), ``checkpoint`` (the replay dump
+#: written, the checkpoint not yet replaced)
+SIGNAL_ENV = "SOFTAE_SIGNAL_AT"
+
+
+def signal_once_at(point: str, count: int, folder: Path) -> None:
+    """Test hook for stop-and-resume tests: SIGTERM to this process where :data:`SIGNAL_ENV` says."""
+    spec = os.environ.get(SIGNAL_ENV)
+    if not spec:
+        return
+    where, _, k = spec.partition(":")
+    marker = folder / ".injected_signal"
+    if where == point and count == int(k) and not marker.exists():
+        marker.write_text(f"SIGTERM at {point} of episode {count}\n")
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 class CheckpointError(RuntimeError):
     """A checkpoint is unreadable or does not belong to this configuration."""
 
@@ -90,6 +138,7 @@ class CheckpointError(RuntimeError):
 class RunDir:
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
+        self.saved_episodes = 0  # complete episodes on disk, as far as this object has loaded or saved them
 
     # ------------------------------------------------------------------ paths
     @property
@@ -171,17 +220,34 @@ class RunDir:
 
     # ------------------------------------------------------------------ checkpoint
     def save(self, state: dict, rb: ReplayBuffer) -> None:
-        episode = state["episode"]
-        dump = self.replay_dump(episode)
-        shutil.rmtree(dump, ignore_errors=True)
-        rb.dumps(str(dump))
-        state = {**state, "format": CHECKPOINT_FORMAT, "num_transitions": len(rb), "replay_dump": dump.name,
-                 "replay_capacity": rb.storage.max_size}
-        atomic_torch_save(state, self.checkpoint_path)
-        for old in self.path.glob("replay_ep*"):
-            if old.name != dump.name:
-                shutil.rmtree(old, ignore_errors=True)
-        self.write_logs(state["history"])
+        """Checkpoint an episode: its replay dump into a new folder, then the checkpoint naming it
+        (atomically), then the logs, then older dumps go. SIGTERM/SIGINT wait for the end
+        (:func:`~torchrl_softae.pipeline.guards.critical`); a failed write (a full disk) removes
+        what it began and leaves the previous checkpoint, its dump and the logs as they were."""
+        with critical():
+            episode = state["episode"]
+            dump = self.replay_dump(episode)
+            shutil.rmtree(dump, ignore_errors=True)
+            try:
+                rb.dumps(str(dump))
+            except OSError as e:
+                shutil.rmtree(dump, ignore_errors=True)
+                raise OSError(e.errno, e.strerror, str(dump)) from e
+            state = {**state, "format": CHECKPOINT_FORMAT, "num_transitions": len(rb), "replay_dump": dump.name,
+                     "replay_capacity": rb.storage.max_size}
+            signal_once_at("checkpoint", episode + 1, self.path)
+            try:
+                atomic_torch_save(state, self.checkpoint_path)
+            except OSError:
+                shutil.rmtree(dump, ignore_errors=True)  # the old checkpoint still names the old dump
+                raise
+            self.saved_episodes = episode + 1
+            # the checkpoint names the new dump now: logs follow it (a failure here is caught up by
+            # the next save or the resume, which rewrites them from the checkpoint)
+            self.write_logs(state["history"])
+            for old in self.path.glob("replay_ep*"):
+                if old.name != dump.name:
+                    shutil.rmtree(old, ignore_errors=True)
 
     def load(self) -> dict:
         try:
@@ -196,6 +262,7 @@ class RunDir:
         for key in ("episode", "config", "model", "history", "num_transitions", "replay_capacity"):
             if key not in state:
                 raise CheckpointError(f"checkpoint {self.checkpoint_path} lacks {key!r}: it is corrupt")
+        self.saved_episodes = state["episode"] + 1
         return state
 
     # ------------------------------------------------------------------ logs

@@ -27,6 +27,8 @@ Sweep file (W&B's format, so ``wandb sweep FILE`` works where a W&B server exist
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import itertools
 import json
 import os
@@ -256,12 +258,20 @@ def run_trial(trial: Trial, threads: int, on_episode=None) -> dict:
 
     from torchrl_softae.allocator import keep_freed_memory
     from torchrl_softae.pipeline.arguments import config_from_args, explore_parser
-    from torchrl_softae.pipeline.evaluate import evaluate_run
-    from torchrl_softae.pipeline.explore import explore
+    from torchrl_softae.pipeline.guards import RunLock
 
     torch.set_num_threads(threads)
     keep_freed_memory()  # as the softae commands do (a Ray worker does not run them)
     cfg = config_from_args(explore_parser().parse_args(trial.argv))
+    Path(trial.run_dir).mkdir(parents=True, exist_ok=True)
+    with RunLock(trial.run_dir, note=None):  # the trial's whole life: explore, evaluate, policies
+        return _run_trial(trial, cfg, on_episode)
+
+
+def _run_trial(trial: Trial, cfg, on_episode) -> dict:
+    from torchrl_softae.pipeline.evaluate import evaluate_run
+    from torchrl_softae.pipeline.explore import explore
+
     history = explore(cfg, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
     row = dict(history[-1])
     if trial.evaluate and not _evaluated(trial):
@@ -364,31 +374,123 @@ def _ray_trainable(config: dict) -> None:
     run_trial(trial, t["threads"], on_episode=lambda row: tune.report(_result(row)))
 
 
+def check_ray_target(address: str | None, storage: str | None) -> None:
+    """``--address`` (``HOST:PORT``, ``ray://HOST:PORT`` or ``auto``) and ``--storage`` (a folder this
+    process can write, made if missing), checked before any trial starts: one line each."""
+    import re
+
+    if address is not None and not re.fullmatch(r"auto|(ray://)?[A-Za-z0-9._\-]+:\d{1,5}", address):
+        raise ConfigError(f"--address {address!r}: expected HOST:PORT, ray://HOST:PORT or auto")
+    if storage is not None:
+        path = Path(storage)
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+            probe = path / f".softae-write-test-{os.getpid()}"
+            probe.write_text("")
+            probe.unlink()
+        except OSError as e:
+            raise ConfigError(f"--storage {storage!r}: expected a folder this process can write ({e.strerror})") from None
+
+
+@contextlib.contextmanager
+def ray_output_to(log_file: Path | None, echo=print):
+    """Inside the block, everything this process and the processes it starts print (Ray's logs,
+    Tune's tables, worker stack traces) goes to ``log_file``; the block gets the ``echo`` for our own
+    lines, which still reach the terminal. ``log_file=None``: nothing is redirected."""
+    if log_file is None:
+        yield echo
+        return
+    log_file.parent.mkdir(parents=True, exist_ok=True)
+    log = open(log_file, "a", buffering=1)  # noqa: SIM115 (closed below)
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    try:  # our lines go where stdout went: the terminal's descriptor, or a Python-level capture
+        terminal = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1) if sys.stdout.fileno() == 1 else sys.stdout
+    except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
+        terminal = sys.stdout
+    saved_fds, saved_streams = (os.dup(1), os.dup(2)), (sys.stdout, sys.stderr)
+    os.dup2(log.fileno(), 1)
+    os.dup2(log.fileno(), 2)
+    sys.stdout = sys.stderr = log
+    try:
+        yield lambda line: print(line, file=terminal, flush=True)
+    finally:
+        sys.stdout, sys.stderr = saved_streams
+        for fd, saved in zip((1, 2), saved_fds):
+            os.dup2(saved, fd)
+            os.close(saved)
+        if terminal is not saved_streams[0]:
+            terminal.close()
+        log.close()
+
+
+def _error_line(trial) -> str:
+    """The exit code and last line of a failed Tune trial's error, as one line."""
+    import re
+
+    text = ""
+    try:
+        error = trial.get_error()
+        text = str(error) if error is not None else ""
+    except Exception:  # noqa: BLE001 (an older Tune without get_error: the error file)
+        path = getattr(trial, "error_file", None)
+        if path and os.path.exists(path):
+            text = Path(path).read_text()
+    code = re.search(r"exit(?:ed with)? code:? (-?\d+)", text, re.IGNORECASE)
+    last = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    return (f"exit code {code.group(1)}" if code else "failed") + (f": {last[-1][:300]}" if last else "")
+
+
 def run_ray(trials: list[Trial], cpus_per_trial: int, max_failures: int, address: str | None = None,
-            storage: str | None = None, num_cpus: int | None = None, echo=print) -> dict:
-    """The trials on Ray Tune: an embedded local Ray (no server, no dashboard) or the cluster at
-    ``address`` (``storage``: Tune's results on a filesystem all nodes share)."""
+            storage: str | None = None, num_cpus: int | None = None, echo=print, log_file: Path | None = None,
+            dashboard: bool = False) -> dict:
+    """The trials on Ray Tune: an embedded local Ray (no dashboard unless ``dashboard``) or the cluster
+    at ``address`` (``storage``: Tune's results on a filesystem all nodes share). Only our lines reach
+    the terminal (a line per finished episode and evaluation, per failed attempt with its exit code
+    and last error line); Ray's own output goes to ``log_file`` (``None``: to the terminal too)."""
     os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # no token file under the home folder for a local Ray
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+    with ray_output_to(log_file, echo) as say:
+        return _run_ray(trials, cpus_per_trial, max_failures, address, storage, num_cpus, say, log_file, dashboard)
+
+
+def _run_ray(trials, cpus_per_trial, max_failures, address, storage, num_cpus, echo, log_file, dashboard) -> dict:
     import ray
     from ray import tune
 
     t0 = time.perf_counter()
-    if address is None:
-        ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False, configure_logging=False,
-                 ignore_reinit_error=True)
-    else:
-        ray.init(address=address, log_to_driver=False, ignore_reinit_error=True)
+    quiet = log_file is not None
+    try:
+        if address is None:
+            ray.init(num_cpus=num_cpus, include_dashboard=dashboard, log_to_driver=not quiet, configure_logging=False,
+                     ignore_reinit_error=True)
+        else:
+            ray.init(address=address, log_to_driver=not quiet, ignore_reinit_error=True)
+    except (ConnectionError, RuntimeError, ValueError) as e:
+        raise ConfigError(f"--address {address!r}: cannot join that Ray cluster ({str(e).splitlines()[0]})") from None
     echo(f"engine: Ray {ray.__version__} ({'embedded, ' + str(int(ray.cluster_resources().get('CPU', 0))) + ' CPUs' if address is None else 'cluster at ' + address}), "
-         f"{cpus_per_trial} CPU(s) and torch thread(s) per trial; started in {time.perf_counter() - t0:.1f} s")
+         f"{cpus_per_trial} CPU(s) and torch thread(s) per trial; started in {time.perf_counter() - t0:.1f} s"
+         + (f"; Ray's own output in {log_file}" if quiet else ""))
     storage_path = str(Path(storage).resolve()) if storage else str((trials[0].run_dir.parents[1] / ".tune").resolve())
+    attempts: dict[str, int] = {}
 
     class Progress(tune.Callback):
-        """The driver's one line per trial result (the trials themselves run quietly)."""
+        """The driver's one line per trial result and per failed attempt (the trials run quietly)."""
 
         def on_trial_result(self, iteration, trials, trial, result, **info):
             t = trial.config["trial"]
             echo(progress_line(t["name"], result, t["episodes"]))
+
+        def on_trial_recover(self, iteration, trials, trial, **info):  # failed, and Tune retries it
+            self._failed(trial, "retrying: it resumes from its run dir")
+
+        def on_trial_error(self, iteration, trials, trial, **info):  # failed for the last time
+            self._failed(trial, "giving up")
+
+        def _failed(self, trial, what: str) -> None:
+            name = trial.config["trial"]["name"]
+            attempts[name] = attempts.get(name, 0) + 1
+            echo(f"trial {name} {_error_line(trial)} (attempt {attempts[name]}); {what}")
 
     tuner = tune.Tuner(
         tune.with_resources(_ray_trainable, {"cpu": cpus_per_trial}),
@@ -396,13 +498,16 @@ def run_ray(trials: list[Trial], cpus_per_trial: int, max_failures: int, address
         tune_config=tune.TuneConfig(trial_name_creator=lambda tr: tr.config["trial"]["name"].replace("/", "_"),
                                     trial_dirname_creator=lambda tr: tr.config["trial"]["name"].replace("/", "_")),
         run_config=tune.RunConfig(name=f"softae-sweep-{int(time.time())}", storage_path=storage_path,
-                                  failure_config=tune.FailureConfig(max_failures=max_failures), verbose=0,
-                                  callbacks=[Progress()]),
+                                  failure_config=tune.FailureConfig(max_failures=max_failures),
+                                  verbose=0 if quiet else 2, callbacks=[Progress()]),
     )
     tuner.fit()
     if address is None:
         ray.shutdown()
-    return {t.name: trial_status(t) for t in trials}
+    status = {t.name: trial_status(t) for t in trials}
+    for name, st in status.items():
+        echo(f"trial {name}: {st}")
+    return status
 
 
 def main(argv=None) -> int:
