@@ -392,6 +392,15 @@ def check_ray_target(address: str | None, storage: str | None) -> None:
             raise ConfigError(f"--storage {storage!r}: expected a folder this process can write ({e.strerror})") from None
 
 
+#: where :func:`_to_terminal` writes while :func:`ray_output_to` redirects everything else (a module
+#: global, not a closure: Tune pickles its callbacks, and an open file cannot be pickled)
+_TERMINAL: dict = {}
+
+
+def _to_terminal(line: str) -> None:
+    print(line, file=_TERMINAL.get("stream", sys.stdout), flush=True)
+
+
 @contextlib.contextmanager
 def ray_output_to(log_file: Path | None, echo=print):
     """Inside the block, everything this process and the processes it starts print (Ray's logs,
@@ -412,9 +421,11 @@ def ray_output_to(log_file: Path | None, echo=print):
     os.dup2(log.fileno(), 1)
     os.dup2(log.fileno(), 2)
     sys.stdout = sys.stderr = log
+    _TERMINAL["stream"] = terminal
     try:
-        yield lambda line: print(line, file=terminal, flush=True)
+        yield _to_terminal
     finally:
+        _TERMINAL.pop("stream", None)
         sys.stdout, sys.stderr = saved_streams
         for fd, saved in zip((1, 2), saved_fds):
             os.dup2(saved, fd)
@@ -425,20 +436,18 @@ def ray_output_to(log_file: Path | None, echo=print):
 
 
 def _error_line(trial) -> str:
-    """The exit code and last line of a failed Tune trial's error, as one line."""
+    """The exit code (where the error names one) and last line of a failed Tune trial's latest
+    failure, from its error file, without Ray's advice on common causes."""
     import re
 
     text = ""
-    try:
-        error = trial.get_error()
-        text = str(error) if error is not None else ""
-    except Exception:  # noqa: BLE001 (an older Tune without get_error: the error file)
-        path = getattr(trial, "error_file", None)
-        if path and os.path.exists(path):
-            text = Path(path).read_text()
+    path = getattr(trial, "error_file", None)
+    if path and os.path.exists(path):
+        text = Path(path).read_text().rsplit("Failure # ", 1)[-1]
+    text = text.split(" Some common causes", 1)[0]
     code = re.search(r"exit(?:ed with)? code:? (-?\d+)", text, re.IGNORECASE)
-    last = [ln.strip() for ln in text.splitlines() if ln.strip()]
-    return (f"exit code {code.group(1)}" if code else "failed") + (f": {last[-1][:300]}" if last else "")
+    last = [ln.strip() for ln in text.splitlines()[1:] if ln.strip()]
+    return (f"failed with exit code {code.group(1)}" if code else "failed") + (f": {last[-1][:300]}" if last else "")
 
 
 def run_ray(trials: list[Trial], cpus_per_trial: int, max_failures: int, address: str | None = None,
