@@ -142,3 +142,15 @@ def test_bad_precision_is_one_clear_error():
     with pytest.raises(ConfigError, match="train.precision='fp16'; valid: auto, fp32, bf16"):
         make_config("Pendulum-v1", "softae", ["train.precision=fp16"])
     assert make_config("Pendulum-v1", "softae").train.precision == "auto" and "auto" in TRAINING_PRECISIONS
+
+
+def test_float64_data_trains_a_float32_model_and_float64_inputs_get_one_clear_error():
+    data = _data().to(torch.float64)  # what gymnasium's MuJoCo envs give
+    trainer = EnsembleTrainer(EnsembleLoss(_model()), lr=1e-3, epochs=2)
+    report = trainer.fit(data)
+    assert report.grad_steps > 0 and all(p.dtype == torch.float32 for p in trainer.model.parameters())
+    with pytest.raises(TypeError, match=r"'observation' is torch.float64, the model's parameters torch.float32: "
+                                        r"cast the data \(TorchRL's DoubleToFloat"):
+        trainer.model.predict(data["observation"], data["action"])
+    with pytest.raises(TypeError, match="DoubleToFloat"):
+        EnsembleLoss(trainer.model)(data[:8])

@@ -323,6 +323,11 @@ class EnsembleWorldModel(TensorDictModuleBase):
                 raise ValueError(
                     f"EnsembleWorldModel: {key!r} has shape {tuple(x.shape)}, expected (..., {d})"
                 )
+            dtype = self.layers[0].weight.dtype
+            if x.dtype != dtype:
+                raise TypeError(f"EnsembleWorldModel: {key!r} is {x.dtype}, the model's parameters {dtype}: cast the "
+                                "data (TorchRL's DoubleToFloat transform for an env with float64 specs) or the "
+                                f"model (model.to({x.dtype}))")
             if not torch.isfinite(x).all():
                 bad = (~torch.isfinite(x)).nonzero()[0].tolist()
                 raise ValueError(f"EnsembleWorldModel: {key!r} contains NaN/inf (first at index {bad})")

@@ -206,7 +206,9 @@ class EnsembleTrainer:
         keys = [k.observation, k.action, k.next_observation]
         model = self.model
         device = model.input_normalizer.loc.device
-        td = transitions_from(data, keys).to(device)  # a replay buffer's storage may live elsewhere
+        # a replay buffer's storage may live elsewhere, and hold another float dtype (gymnasium's
+        # MuJoCo envs give float64): the data takes the model's device and dtype, once
+        td = transitions_from(data, keys).to(device).to(model.layers[0].weight.dtype)
         n = td.shape[0]
         if n < 2:
             raise ValueError(f"EnsembleTrainer.fit needs at least 2 finite transitions, got {n}")
