@@ -124,8 +124,9 @@ class EnsembleTrainer:
             fused where torch has it for the model's device (CPU, CUDA).
         precision (str): the dtype of the network's matmuls, one of :data:`TRAINING_PRECISIONS`:
             ``"fp32"`` (default), ``"bf16"`` (``torch.autocast``: the hidden layers' matmuls in bf16;
-            the output head, master weights, loss, normalizers and optimizer state in fp32) or ``"auto"`` (bf16 where it measures faster for
-            this model here, :func:`resolve_training_dtype`). Resolved once, at the first
+            the output head, master weights, loss, normalizers and optimizer state in fp32) or
+            ``"auto"`` (bf16 where it measures faster for this model here,
+            :func:`resolve_training_dtype`). Resolved once, at the first
             :meth:`fit`, and kept in :meth:`state_dict`, so a resumed run trains as it began.
         progress (bool): show a tqdm bar.
 
@@ -220,8 +221,7 @@ class EnsembleTrainer:
         n_train = train.shape[0]
         with record_function("softae.train.normalizers"):
             obs, act, nxt = train.get(k.observation), train.get(k.action), train.get(k.next_observation)
-            model._check(obs, act)
-            model.fit_normalizers(obs, act, nxt)
+            model.fit_normalizers(obs, act, nxt)  # checks the data's shapes and dtype once, for every step
             with torch.no_grad():
                 inputs, targets = model.network_input(obs, act), model.normalized_target(obs, nxt)
 

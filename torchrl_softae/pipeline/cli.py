@@ -333,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except Stopped as e:
         where = (f" at episode {e.done + 1} of {e.total} ({e.done} complete and saved)"
-                 if getattr(e, "total", None) is not None and e.done < e.total else "")
+                 if e.total is not None and e.done < e.total else "")
         print(f"softae: stopped by {e}{where}; rerun the same command to resume", file=sys.stderr)
         return e.exit_code
     except OSError as e:

@@ -110,11 +110,15 @@ def _read_holder(fd: int) -> dict:
 
 
 class Stopped(Exception):
-    """The run was asked to stop by ``signum``; the process should exit with :attr:`exit_code`."""
+    """The run was asked to stop by ``signum``; the process should exit with :attr:`exit_code`.
+    ``done`` and ``total``: the complete episodes on disk and the run's episodes, where the run that
+    stopped knows them."""
 
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
+        self.done: int | None = None
+        self.total: int | None = None
 
     @property
     def exit_code(self) -> int:

@@ -455,8 +455,8 @@ def run_ray(trials: list[Trial], cpus_per_trial: int, max_failures: int, address
             dashboard: bool = False) -> dict:
     """The trials on Ray Tune: an embedded local Ray (no dashboard unless ``dashboard``) or the cluster
     at ``address`` (``storage``: Tune's results on a filesystem all nodes share). Only our lines reach
-    the terminal (a line per finished episode and evaluation, per failed attempt with its exit code
-    and last error line); Ray's own output goes to ``log_file`` (``None``: to the terminal too)."""
+    the terminal (a line per finished episode and evaluation, per failed attempt with Ray's last line
+    on it and the exit code where Ray names one); Ray's own output goes to ``log_file`` (``None``: to the terminal too)."""
     os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # no token file under the home folder for a local Ray
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
     with ray_output_to(log_file, echo) as say:
@@ -469,14 +469,14 @@ def _run_ray(trials, cpus_per_trial, max_failures, address, storage, num_cpus, e
 
     t0 = time.perf_counter()
     quiet = log_file is not None
-    try:
-        if address is None:
-            ray.init(num_cpus=num_cpus, include_dashboard=dashboard, log_to_driver=not quiet, configure_logging=False,
-                     ignore_reinit_error=True)
-        else:
+    if address is None:
+        ray.init(num_cpus=num_cpus, include_dashboard=dashboard, log_to_driver=not quiet, configure_logging=False,
+                 ignore_reinit_error=True)
+    else:
+        try:
             ray.init(address=address, log_to_driver=not quiet, ignore_reinit_error=True)
-    except (ConnectionError, RuntimeError, ValueError) as e:
-        raise ConfigError(f"--address {address!r}: cannot join that Ray cluster ({str(e).splitlines()[0]})") from None
+        except (ConnectionError, RuntimeError, ValueError) as e:
+            raise ConfigError(f"--address {address!r}: cannot join that Ray cluster ({str(e).splitlines()[0]})") from None
     echo(f"engine: Ray {ray.__version__} ({'embedded, ' + str(int(ray.cluster_resources().get('CPU', 0))) + ' CPUs' if address is None else 'cluster at ' + address}), "
          f"{cpus_per_trial} CPU(s) and torch thread(s) per trial; started in {time.perf_counter() - t0:.1f} s"
          + (f"; Ray's own output in {log_file}" if quiet else ""))
