@@ -18,7 +18,7 @@ from dataclasses import dataclass
 # ----------------------------------------------------------------------------- config
 @dataclass
 class Config:
-    env: str = "Pendulum-v1"       # any id of torchrl_softae.envs.robots.ENVS with a gym entry
+    env: str = "Pendulum-v1"       # a gymnasium id (ours, or e.g. Reacher-v5), module:EnvId-v0 or module:callable
     episodes: int = 10             # N
     episode_length: int = 200      # T (Table S6)
     seed: int = 0
@@ -51,18 +51,20 @@ def main(cfg: Config) -> None:
     import torch
     from torchrl.collectors import Collector
     from torchrl.data import LazyTensorStorage, ReplayBuffer
-    from torchrl.envs import Compose, GymEnv, StepCounter, TransformedEnv
+    from torchrl.envs import Compose, StepCounter, TransformedEnv
     from torchrl.record.loggers.wandb import WandbLogger
 
     import torchrl_softae  # registers the gymnasium ids
     from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
+    from torchrl_softae.envs.references import make_env
     from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
     from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 
     torch.manual_seed(cfg.seed)
     torchrl_softae.keep_freed_memory()  # process-wide: the planner's large tensors reuse memory, no page faults
     # ------------------------------------------------------------------------- the real env
-    env = TransformedEnv(GymEnv(cfg.env), StepCounter(max_steps=cfg.episode_length))
+    # float64 observations (gymnasium's MuJoCo envs) come out float32, as the model computes
+    env = make_env(cfg.env).append_transform(StepCounter(max_steps=cfg.episode_length))
     env.set_seed(cfg.seed)
     d_s = env.observation_spec["observation"].shape[-1]
     d_a = env.action_spec.shape[-1]
@@ -87,7 +89,9 @@ def main(cfg: Config) -> None:
     # ------------------------------------------------------------------------- Algorithm 1
     for episode in range(cfg.episodes):
         policy.reset()  # a fresh warm start
-        collector = Collector(env, policy, frames_per_batch=cfg.episode_length, total_frames=cfg.episode_length)
+        # the planner keeps no recurrent state: the env needs no InitTracker
+        collector = Collector(env, policy, frames_per_batch=cfg.episode_length, total_frames=cfg.episode_length,
+                              auto_register_policy_transforms=False)
         with torch.no_grad():  # planning needs no graph
             data = next(iter(collector))
         collector.shutdown()

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 @dataclass
 class Config:
     model: str = "softae_model.pt"   # written by examples/softae_exploration.py
-    task: str = "swingup"            # a task of the env (torchrl_softae.tasks.tasks_for(env))
+    task: str = "swingup"            # a task of the env (tasks_for(env)), or module:attr naming your own Task
     episodes: int = 3
     seed: int = 0
     horizon: int = 20                # iCEM (Table S7; longer than exploration's where a task needs it)
@@ -37,12 +37,13 @@ def parse_config() -> Config:
 
 def main(cfg: Config) -> list[float]:
     import torch
-    from torchrl.envs import GymEnv, TransformedEnv
+    from torchrl.envs import TransformedEnv
 
     import torchrl_softae  # registers the gymnasium ids
     from torchrl_softae.envs import EnsembleModelEnv
+    from torchrl_softae.envs.references import make_env
     from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
-    from torchrl_softae.tasks import TaskReward, tasks_for
+    from torchrl_softae.tasks import TaskReward, load_tasks, tasks_for
 
     torchrl_softae.keep_freed_memory()  # process-wide: the planner's large tensors reuse memory, no page faults
 
@@ -50,12 +51,15 @@ def main(cfg: Config) -> list[float]:
     model = EnsembleWorldModel(saved["observation_dim"], saved["action_dim"], **saved["model_kwargs"])
     model.load_state_dict(saved["state_dict"])
     model.eval()
-    tasks = tasks_for(saved["env"])
-    if cfg.task not in tasks:
-        raise SystemExit(f"unknown task {cfg.task!r} for {saved['env']}; valid tasks: {', '.join(sorted(tasks))}")
-    task = tasks[cfg.task]
+    if ":" in cfg.task:  # your own task (module:attr); the first, where it names several
+        task = next(iter(load_tasks(cfg.task).values()))
+    else:
+        tasks = tasks_for(saved["env"])
+        if cfg.task not in tasks:
+            raise SystemExit(f"unknown task {cfg.task!r} for {saved['env']}; valid tasks: {', '.join(sorted(tasks))}")
+        task = tasks[cfg.task]
 
-    real = TransformedEnv(GymEnv(saved["env"]), TaskReward(task))
+    real = TransformedEnv(make_env(saved["env"]), TaskReward(task))
     model_env = TransformedEnv(EnsembleModelEnv(model, action_spec=real.action_spec.clone(), mode="mean"),
                                TaskReward(task))
     planner = ICEMPlanner(model_env, planning_horizon=cfg.horizon, num_candidates=cfg.num_candidates,

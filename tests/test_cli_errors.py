@@ -42,7 +42,7 @@ def test_bad_config_value_is_one_line_then_the_corrected_command_runs(tmp_path, 
 
 def test_bad_method_env_task_threads(tmp_path, capsys):
     assert main(["explore", "--env", "SoftArm-v9", "--run-dir", str(tmp_path / "a")]) == 2
-    _one_error_line(capsys, "unknown env 'SoftArm-v9'", "valid envs")
+    _one_error_line(capsys, "unknown env 'SoftArm-v9'", "catalog id")
     assert main(["explore", "--method", "sofae", "--run-dir", str(tmp_path / "a")]) == 2
     _one_error_line(capsys, "unknown method 'sofae'", "valid methods")
     assert main(["explore", "--method", "hucrl", "--run-dir", str(tmp_path / "a")]) == 2

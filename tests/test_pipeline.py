@@ -112,9 +112,9 @@ def test_swingup_task_reward_matches_gymnasium():
     "kwargs, overrides, match",
     [
         (dict(env="Pendulum-v1", method="ucb"), [], "valid methods: random, mean-ae, pets-ae, hucrl, mbpo, mbpo-ts, softae"),
-        (dict(env="Acrobot-v7", method="softae"), [], "valid envs: .*Pendulum-v1"),
+        (dict(env="Acrobot-v7", method="softae"), [], "unknown env .Acrobot-v7.: expected a catalog id .*Pendulum-v1.*, a registered gymnasium id"),
         (dict(env="Pendulum-v1", method="hucrl"), [], "pass --task, one of spin, swingup"),
-        (dict(env="Pendulum-v1", method="softae", task="fly"), [], "valid tasks: spin, swingup"),
+        (dict(env="Pendulum-v1", method="softae", task="fly"), [], "unknown task .fly. for env .Pendulum-v1.: expected one of spin, swingup, or module:attr"),
         (dict(env="Pendulum-v1", method="softae"), ["planner.horizon=-3"], "planner.horizon=-3"),
         (dict(env="Pendulum-v1", method="softae"), ["planner.horizn=3"], "valid keys here: horizon"),
         (dict(env="Pendulum-v1", method="softae"), ["beta=-1"], "beta=-1"),

@@ -39,6 +39,8 @@ command:
   - "train.epochs=1"
   - "--set"
   - "heldout_size=50"
+  - "--set"
+  - "train.precision=fp32"  # "auto" times both dtypes: the resumed and the reference run must train alike
   - "--wandb"
   - "disabled"
   - "--quiet"
@@ -46,6 +48,9 @@ command:
 evaluate: {tasks: [swingup], episodes: 1, planner: {horizon: 2}, references: true}
 """
 HAS_RAY = importlib.util.find_spec("ray") is not None
+# the same sweep over an env and tasks from the user's own module (tests/outside_envs.py)
+OUTSIDE_ENV = "outside_envs:OutsidePoint-v0"
+OUTSIDE = TINY.replace('"Pendulum-v1"', f'"{OUTSIDE_ENV}"').replace("tasks: [swingup]", "tasks: [outside_envs:point_tasks]")
 
 
 def _write(tmp_path, text=TINY, name="sweep.yaml"):
@@ -58,23 +63,23 @@ def _model(run_dir):
     return torch.load(Path(run_dir) / "checkpoint.pt", weights_only=False)["model"]
 
 
-def _check_progress(out):
+def _check_progress(out, env="Pendulum-v1", task="swingup"):
     """One line per explored episode and per evaluation of every trial, as they happen."""
     for name in ("random-s0", "random-s1", "softae-b2-s0", "softae-b2-s1"):
-        lines = [ln for ln in out.splitlines() if ln.startswith(f"trial Pendulum-v1/{name}: ")]
+        lines = [ln for ln in out.splitlines() if ln.startswith(f"trial {env}/{name}: ")]
         assert any("episode 1/3, held-out normalized MSE" in ln for ln in lines), lines
         assert any("episode 3/3, held-out normalized MSE" in ln for ln in lines), lines
-        assert any("evaluated zero-shot (returns: swingup " in ln for ln in lines), lines
+        assert any(f"evaluated zero-shot (returns: {task} " in ln for ln in lines), lines
 
 
-def _check_sweep(tmp_path, root, capsys):
+def _check_sweep(tmp_path, root, capsys, env="Pendulum-v1", tasks=("swingup",)):
     runs = sorted(p.parent for p in Path(root).rglob("checkpoint.pt"))
     assert [p.name for p in runs] == ["random-s0", "random-s1", "softae-b2-s0", "softae-b2-s1"]
     for run in runs:
         history = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
         assert [h["episode"] for h in history] == [0, 1, 2]  # no repeated, no missing episode
-        assert (run / "eval" / "swingup@horizon=2.json").exists()
-    killed = Path(root) / "Pendulum-v1" / "softae-b2-s1"
+        assert all((run / "eval" / f"{task}@horizon=2.json").exists() for task in tasks)
+    killed = Path(root) / env / "softae-b2-s1"
     assert (killed / ".injected_exit").exists()  # it really died after episode 2
     # the same run, uninterrupted, in this process with the trial's single thread
     from torchrl_softae.pipeline.sweep import expand, load_sweep, run_trial
@@ -96,18 +101,24 @@ def _check_sweep(tmp_path, root, capsys):
 
 @pytest.mark.skipif(not HAS_RAY, reason="Ray is not installed (pip install 'torchrl-softae[ray]')")
 def test_ray_sweep_runs_trials_concurrently_resumes_a_killed_one_and_prints_only_our_lines(tmp_path, capsys):
-    """`softae sweep` as a user runs it: its terminal shows our lines only (one per episode, evaluation,
-    failed attempt and trial), Ray's output lands in ROOT/ray.log, and no dashboard process starts."""
+    """`softae sweep` as a user runs it, over an env and tasks of the user's own module in the folder
+    they run it from (Tune runs each trial in a folder of its own): its terminal shows our lines only
+    (one per episode, evaluation, failed attempt and trial), Ray's output lands in ROOT/ray.log, and
+    no dashboard process starts."""
     import os
     import time
 
-    f = _write(tmp_path)
+    f = _write(tmp_path, OUTSIDE)
+    project = tmp_path / "project"
+    project.mkdir()
+    shutil.copy(Path(__file__).parent / "outside_envs.py", project)
     root = tmp_path / "runs"
     env = {**os.environ, "SOFTAE_EXIT_AFTER_EPISODE": "2:softae-b2-s1",
            "HOME": str(tmp_path / "home")}  # nothing may be left in the real home folder
+    env.pop("PYTHONPATH", None)
     proc = subprocess.Popen([sys.executable, "-m", "torchrl_softae.pipeline.cli", "sweep", str(f), "--root", str(root),
                              "--cpus-per-trial", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=env)
+                            env=env, cwd=project)
     dashboards = set()
     while proc.poll() is None:  # Ray's dashboard, if anything started it, is a process of its own
         ps = subprocess.run(["ps", "-eo", "pid,args"], capture_output=True, text=True).stdout
@@ -118,15 +129,16 @@ def test_ray_sweep_runs_trials_concurrently_resumes_a_killed_one_and_prints_only
     assert not dashboards, dashboards
     assert err == ""
     assert "engine: Ray" in out and "embedded, 2 CPUs" in out and f"Ray's own output in {root / 'ray.log'}" in out
-    _check_progress(out)
-    ours = ("sweep ", "softae explore ", "engine: ", "trial Pendulum-v1/")
+    _check_progress(out, OUTSIDE_ENV, "reach-left")
+    ours = ("sweep ", "softae explore ", "engine: ", f"trial {OUTSIDE_ENV}/", "note: ")
+    assert "note: held-out set: random-action episodes (favours Random)" in out
     assert all(ln.startswith(ours) for ln in out.splitlines() if ln.strip()), out
     # Ray knows the worker died, not its exit code: the line gives Ray's last line on it
-    failed = [ln for ln in out.splitlines() if ln.startswith("trial Pendulum-v1/softae-b2-s1 failed")]
+    failed = [ln for ln in out.splitlines() if ln.startswith(f"trial {OUTSIDE_ENV}/softae-b2-s1 failed")]
     assert len(failed) == 1 and ("worker process has died" in failed[0] or "Worker exit" in failed[0]), out
     assert failed[0].endswith("(attempt 1); retrying: it resumes from its run dir"), failed
     assert "Traceback" not in out and (root / "ray.log").stat().st_size > 0
-    _check_sweep(tmp_path, root, capsys)
+    _check_sweep(tmp_path, root, capsys, OUTSIDE_ENV, ("reach-left", "reach-up"))
     assert not (tmp_path / "home" / ".ray").exists() or not any((tmp_path / "home" / ".ray").rglob("*token*"))
 
 

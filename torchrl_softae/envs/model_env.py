@@ -260,6 +260,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         obs = tensordict.get("observation")
         action = tensordict.get("action")
         if self._check_actions:
+            self.world_model.check_dtype("observation", obs)
             self._check_action(action)
         member = tensordict.get(self.member_key, None) if self.mode == "sample" else None
         nxt, sigma = self.propagate(obs, action, tensordict.get("eta", None), member)
@@ -326,6 +327,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             if _leaves_box(action_sequences, low, high):
                 raise ValueError(f"EnsembleModelEnv.evaluate_action_sequences: action sequences leave the action "
                                  f"spec [{float(low.min()):.4g}, {float(high.max()):.4g}]")
+        self.world_model.check_dtype("observation", initial_state.get("observation"))  # e.g. a float64 real env
         obs = initial_state.get("observation").reshape(B, 1, 1, -1).expand(B, N, P, -1)
         member = None
         if self.mode == "sample" and P > 1:

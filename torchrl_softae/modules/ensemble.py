@@ -312,6 +312,14 @@ class EnsembleWorldModel(TensorDictModuleBase):
         return self.output_normalizer.normalize(self._to_model_space(next_observation) - self._to_model_space(observation))
 
     # ------------------------------------------------------------------ input validation
+    def check_dtype(self, key: str, x: torch.Tensor) -> None:
+        """A TypeError naming ``key``'s dtype and the fix where ``x`` is not of the parameters' dtype."""
+        dtype = self.layers[0].weight.dtype
+        if x.dtype != dtype:
+            raise TypeError(f"EnsembleWorldModel: {key!r} is {x.dtype}, the model's parameters {dtype}: cast the "
+                            "data (TorchRL's DoubleToFloat transform for an env with float64 specs) or the "
+                            f"model (model.to({x.dtype}))")
+
     def _check(self, observation: torch.Tensor, action: torch.Tensor) -> None:
         for key, x, d in (
             (self.in_keys[0], observation, self.observation_dim),
@@ -323,11 +331,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
                 raise ValueError(
                     f"EnsembleWorldModel: {key!r} has shape {tuple(x.shape)}, expected (..., {d})"
                 )
-            dtype = self.layers[0].weight.dtype
-            if x.dtype != dtype:
-                raise TypeError(f"EnsembleWorldModel: {key!r} is {x.dtype}, the model's parameters {dtype}: cast the "
-                                "data (TorchRL's DoubleToFloat transform for an env with float64 specs) or the "
-                                f"model (model.to({x.dtype}))")
+            self.check_dtype(key, x)
             if not torch.isfinite(x).all():
                 bad = (~torch.isfinite(x)).nonzero()[0].tolist()
                 raise ValueError(f"EnsembleWorldModel: {key!r} contains NaN/inf (first at index {bad})")

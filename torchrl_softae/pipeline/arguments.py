@@ -36,7 +36,9 @@ def available_cores() -> int:
 
 
 def add_explore_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--env", default="Pendulum-v1", help="environment id (see `softae envs`); default Pendulum-v1")
+    p.add_argument("--env", default="Pendulum-v1",
+                   help="a catalog id (see `softae envs`), a registered gymnasium id (Reacher-v5), module:EnvId-v0 "
+                        "or module:callable returning a gymnasium or TorchRL env; default Pendulum-v1")
     p.add_argument("--method", default="softae", help=f"one of {', '.join(METHOD_NAMES)}; default softae")
     p.add_argument("--episodes", type=int, default=None, help="exploration episodes N (default 10)")
     p.add_argument("--seed", type=int, default=0)
@@ -45,7 +47,15 @@ def add_explore_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episode-length", type=int, default=None, help="exploration horizon T (env default)")
     p.add_argument("--beta", type=float, default=None,
                    help="optimism beta for the methods that use it (default: the paper's, Table S6)")
-    p.add_argument("--task", default=None, help="the task of the methods that optimize one (hucrl, mbpo, mbpo-ts)")
+    p.add_argument("--task", default=None, help="the task of the methods that optimize one (hucrl, mbpo, mbpo-ts): "
+                                                "a task of the env, or module:attr naming your own Task")
+    p.add_argument("--heldout", default=None, metavar="FILE",
+                   help="your own held-out transitions for the model-accuracy metric: a TensorDict saved with "
+                        "torch.save, or a memmap directory, with observation, action, ('next', 'observation') "
+                        "(default: the env's held-out set; outside the catalog, random-action episodes)")
+    p.add_argument("--coverage-dims", default=None, metavar="I,J",
+                   help="the two state dimensions of the coverage grid (default: the env's projection; "
+                        "outside the catalog, 0,1)")
     p.add_argument("--eval-every", type=int, default=None, help="zero-shot evaluate all tasks every K episodes (0 = never)")
     p.add_argument("--preset", choices=sorted(PRESETS), default="paper",
                    help="paper: Table S6/S7 sizes; quick: small model/planner/SAC for demos and tests; mbpo, "
@@ -68,12 +78,14 @@ def config_from_args(args):
     return make_config(
         args.env, args.method, overrides, episodes=args.episodes, seed=args.seed, episode_length=args.episode_length,
         beta=args.beta, task=args.task, eval_every=args.eval_every, wandb=args.wandb,
+        heldout_file=None if args.heldout is None else os.path.abspath(args.heldout), coverage_dims=args.coverage_dims,
     )
 
 
 def run_dir_for(cfg, root: str = "runs") -> str:
-    """``ROOT/ENV/NAME`` with the name the method table gives (beta only where the method uses it)."""
-    return os.path.join(root, cfg.env, get_method(cfg.method).run_name(cfg.seed, cfg.beta))
+    """``ROOT/ENV/NAME`` with the name the method table gives (beta only where the method uses it);
+    ENV is the env reference as given, a ``/`` in it (``ALE/Pong-v5``) written ``-``."""
+    return os.path.join(root, cfg.env.replace("/", "-"), get_method(cfg.method).run_name(cfg.seed, cfg.beta))
 
 
 def explore_parser() -> argparse.ArgumentParser:

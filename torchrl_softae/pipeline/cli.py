@@ -43,19 +43,21 @@ def _progress_style(args) -> tuple[bool, object]:
 
 
 def cmd_explore(args) -> int:
+    from torchrl_softae.pipeline.catalog import heldout_note
     from torchrl_softae.pipeline.explore import explore
 
     cfg = _config(args)
+    note = heldout_note(cfg)
     threads = _threads(args.threads)
     run_dir = args.run_dir or run_dir_for(cfg)
     progress, echo = _progress_style(args)
     if echo is not None:
         echo(f"explore {cfg.env} with {cfg.method}: {cfg.episodes} episodes x {cfg.episode_length} steps, "
-             f"{_engine(cfg.planner.precision, threads)}; run dir {run_dir}")
+             f"{_engine(cfg.planner.precision, threads)}; run dir {run_dir}" + (f"; {note}" if note else ""))
     history = explore(cfg, run_dir, progress=progress, echo=echo)
     last = history[-1]
     print(f"{run_dir}: {last['episode'] + 1} episodes, {last['transitions']} transitions, "
-          f"held-out normalized MSE {last['heldout_nmse']:.4g}, coverage {last['coverage']:.3f}; "
+          f"held-out normalized MSE {last['heldout_nmse']:.4g}{f' [{note}]' if note else ''}, coverage {last['coverage']:.3f}; "
           f"results in {run_dir}/ (metrics.csv, checkpoint.pt, replay buffer, wandb/)")
     return 0
 
@@ -79,7 +81,8 @@ def cmd_evaluate(args) -> int:
     res = evaluate_run(args.run_dir, tasks=args.task or None, episodes=args.episodes, seed=args.seed,
                        propagation=args.propagation, progress=progress, planner_overrides=args.overrides,
                        references=args.references)
-    print(f"{args.run_dir}: held-out normalized MSE {res['heldout_nmse']:.4g}")
+    note = "" if res["heldout_set"] == "the env's own" else f" [{res['heldout_set']}]"
+    print(f"{args.run_dir}: held-out normalized MSE {res['heldout_nmse']:.4g}{note}")
     for name, r in res["tasks"].items():
         extra = _metrics_summary(r["metrics"])
         extra = "  " + extra if extra else ""
@@ -129,6 +132,8 @@ def cmd_plot(args) -> int:
 
 
 def cmd_sweep(args) -> int:
+    from torchrl_softae.pipeline.arguments import explore_parser
+    from torchrl_softae.pipeline.catalog import heldout_note
     from torchrl_softae.pipeline.config import ConfigError
     from torchrl_softae.pipeline.sweep import check_ray_target, expand, load_sweep, run_local, run_ray, trial_status
 
@@ -149,6 +154,8 @@ def cmd_sweep(args) -> int:
           + f"; {len(trials) - len(todo)} finished, {len(todo)} to run, under {root}")
     for t in trials:
         print(f"softae explore {' '.join(t.argv)}   [{status[t.name]}]", flush=True)
+    for note in sorted({heldout_note(_config(explore_parser().parse_args(t.argv))) for t in trials} - {""}):
+        print(f"note: {note}", flush=True)
     if args.dry_run or not todo:
         return 0
     use_ray = args.jobs is None and _ray_available()
@@ -208,6 +215,7 @@ def cmd_envs(args) -> int:
     for env_id in env_ids():
         e = get_env_entry(env_id)
         print(f"{env_id:>20}  tasks: {', '.join(sorted(e.tasks)):<30} {e.description}")
+    print("and any registered gymnasium id (Reacher-v5), module:EnvId-v0 or module:callable; tasks by module:attr")
     return 0
 
 
@@ -225,7 +233,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="zero-shot task returns and model accuracy of a run")
     p.add_argument("--run-dir", required=True)
-    p.add_argument("--task", action="append", default=[], help="task name (repeatable; default: all tasks of the env)")
+    p.add_argument("--task", action="append", default=[],
+                   help="a task of the env, or module:attr naming your own Task, a dict of them or a function "
+                        "returning either (repeatable; default: all tasks of the env)")
     p.add_argument("--episodes", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--propagation", default="mean",
@@ -244,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(SoftAE-MBPO for a SoftAE run). Writes RUN/policies/TASK-PROPAGATION-sSEED-epEPISODES/; "
                                    "rerunning the same command resumes a killed training.")
     p.add_argument("--run-dir", required=True)
-    p.add_argument("--task", required=True, help="a task of the run's env (see `softae envs`)")
+    p.add_argument("--task", required=True, help="a task of the run's env (see `softae envs`), or module:attr naming your own")
     p.add_argument("--propagation", default="mean", help="the model env's mode in the rollouts (default mean = MBPO; "
                                                           "sample = MBPO-TS)")
     p.add_argument("--updates", type=int, default=None,
@@ -323,12 +333,13 @@ def main(argv: list[str] | None = None) -> int:
     from torchrl_softae.pipeline.config import ConfigError
     from torchrl_softae.pipeline.guards import RunLocked, Stopped, write_failure
     from torchrl_softae.pipeline.runs import CheckpointError
+    from torchrl_softae.references import BadReference
 
     # past a file-size limit (RLIMIT_FSIZE) a write fails with EFBIG instead of killing the process
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     try:
         return args.func(args)
-    except (ConfigError, CheckpointError, FileNotFoundError, RenderingUnavailable, RunLocked) as e:
+    except (ConfigError, BadReference, CheckpointError, FileNotFoundError, RenderingUnavailable, RunLocked) as e:
         print(f"softae: error: {e}", file=sys.stderr)
         return 2
     except Stopped as e:

@@ -96,8 +96,9 @@ class PolicyConfig:
 class ExploreConfig:
     """One exploration run (``softae explore``).
 
-    ``method``: a name of :data:`torchrl_softae.pipeline.methods.METHODS`; ``beta`` matters only
-    for methods that use it.
+    ``env``: a catalog id, a registered gymnasium id, ``module:EnvId-v0`` or ``module:callable``;
+    ``task``: one of the env's tasks or ``module:attr``; ``method``: a name of
+    :data:`torchrl_softae.pipeline.methods.METHODS`; ``beta`` matters only for methods that use it.
     """
 
     env: str = "Pendulum-v1"
@@ -109,6 +110,8 @@ class ExploreConfig:
     task: str | None = None
     normalize_uncertainty: bool = True
     heldout_size: int = 2000
+    heldout_file: str | None = None  # the user's held-out transitions (--heldout FILE) instead of the env's set
+    coverage_dims: str | None = None  # "I,J": the state dimensions of the coverage grid (default: the env's)
     eval_every: int = 0
     eval_episodes: int = 1
     wandb: str = "offline"
@@ -136,19 +139,24 @@ class ExploreConfig:
     # ------------------------------------------------------------------ validation
     def validate(self) -> "ExploreConfig":
         """Check every field (types, ranges, names); a :class:`ConfigError` names the first bad one."""
-        from torchrl_softae.pipeline.catalog import get_env_entry
+        from torchrl_softae.pipeline.catalog import get_env_entry, get_task, run_entry
+        from torchrl_softae.pipeline.data import load_transitions
 
         _check_types(self)
         try:
             entry = get_env_entry(self.env)
             method = get_method(self.method)
+            task = None if self.task is None else get_task(entry, self.task)
+            if self.heldout_file is not None or self.coverage_dims is not None:
+                obs_spec, action_spec = run_entry(self).specs()
+            if self.heldout_file is not None:
+                load_transitions(self.heldout_file, obs_spec["observation"].shape[-1], action_spec.shape[-1])
         except ValueError as e:
             raise ConfigError(str(e)) from None
         tasks = sorted(entry.tasks)
         if method.needs_task and self.task is None:
-            raise ConfigError(f"method {method.name!r} optimizes a task reward: pass --task, one of {', '.join(tasks)}")
-        if self.task is not None and self.task not in entry.tasks:
-            raise ConfigError(f"unknown task {self.task!r} for env {self.env!r}; valid tasks: {', '.join(tasks)}")
+            choices = f"one of {', '.join(tasks)}, or module:attr" if tasks else "module:attr naming your Task"
+            raise ConfigError(f"method {method.name!r} optimizes a task reward: pass --task, {choices}")
         positive = {
             "episodes": self.episodes, "episode_length": self.episode_length, "heldout_size": self.heldout_size,
             "eval_episodes": self.eval_episodes,
@@ -188,7 +196,7 @@ class ExploreConfig:
             raise ConfigError(f"policy.real_ratio={self.policy.real_ratio!r}; expected in [0, 1]")
         if not 0 < self.policy.gamma <= 1 or not 0 < self.policy.tau <= 1:
             raise ConfigError(f"policy.gamma={self.policy.gamma!r} and policy.tau={self.policy.tau!r}: expected in (0, 1]")
-        if method.trains_policy and self.task is not None and entry.tasks[self.task].instantiate is not None:
+        if method.trains_policy and task is not None and task.instantiate is not None:
             raise ConfigError(f"task {self.task!r} is a family of targets: a SAC policy needs one fixed task "
                               f"(choose one of {', '.join(t for t in tasks if entry.tasks[t].instantiate is None)})")
         if self.train.precision not in TRAINING_PRECISIONS:

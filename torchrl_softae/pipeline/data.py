@@ -19,7 +19,7 @@ from torchrl_softae.pipeline.catalog import EnvEntry
 from torchrl_softae.pipeline.runs import RunDir, atomic_torch_save
 from torchrl_softae.seeding import derive_seed
 
-__all__ = ["make_real_env", "episode_seed", "seed_everything", "heldout_set", "reference_set", "reference_scale",
+__all__ = ["make_real_env", "episode_seed", "load_transitions", "TRANSITION_KEYS", "seed_everything", "heldout_set", "reference_set", "reference_scale",
            "normalized_mse", "trivial_nmse", "legacy_normalized_mse", "coverage", "coverage_counts", "projection_bounds", "COVERAGE_BINS", "ModelAccuracy"]
 
 
@@ -51,22 +51,24 @@ def _cached(entry: EnvEntry, kind: str, make, size: int, seed: int, run: RunDir 
     default ``~/.cache/torchrl_softae``), keyed by env, physics version, size and seed: simulators
     are slow, and runs of another physics version never share a set. ``announce`` gets one line
     before and one after a build (the arm's held-out set takes minutes)."""
-    name = f"{entry.env_id}-v{entry.version}-{kind}-{size}-{seed}.pt"
+    name = f"{entry.env_id.replace(':', '-').replace('/', '-')}-v{entry.version}-{kind}-{size}-{seed}.pt"
     local = None if run is None else run.path / name
     if local is not None and local.exists():
         return torch.load(local, weights_only=False)
     cached = _cache_dir() / kind / name
-    if cached.exists():
+    if entry.version is not None and cached.exists():
         td = torch.load(cached, weights_only=False)
     else:
         if announce is not None:
-            announce(f"building the {kind} set of {entry.env_id} (size {size}, seed {seed}) once; later runs read {cached}")
+            announce(f"building the {kind} set of {entry.env_id} (size {size}, seed {seed}) once; "
+                     + (f"later runs read {cached}" if entry.version is not None else "the run dir keeps it"))
         t0 = time.perf_counter()
         td = make(size, seed)
         if announce is not None:
             announce(f"{kind} set built: {td.shape[0]} transitions in {time.perf_counter() - t0:.0f} s")
-        cached.parent.mkdir(parents=True, exist_ok=True)
-        atomic_torch_save(td, cached)
+        if entry.version is not None:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            atomic_torch_save(td, cached)
     if local is not None:
         atomic_torch_save(td, local)
     return td
@@ -74,8 +76,56 @@ def _cached(entry: EnvEntry, kind: str, make, size: int, seed: int, run: RunDir 
 
 def heldout_set(entry: EnvEntry, run: RunDir | None, size: int, seed: int = 12345,
                 announce: Callable[[str], None] | None = None) -> TensorDictBase:
-    """The env's held-out transitions (``entry.heldout``), cached."""
-    return _cached(entry, "heldout", entry.heldout, size, seed, run, announce)
+    """The env's held-out transitions (``entry.heldout``), cached; or all of the user's
+    ``entry.heldout_file``, copied into the run dir at first use (the run keeps what it measured on)."""
+    if entry.heldout_file is None:
+        return _cached(entry, "heldout", entry.heldout, size, seed, run, announce)
+    local = None if run is None else run.path / "heldout-file.pt"
+    if local is not None and local.exists():
+        return torch.load(local, weights_only=False)
+    obs_spec, action_spec = entry.specs()
+    td = load_transitions(entry.heldout_file, obs_spec["observation"].shape[-1], action_spec.shape[-1])
+    if local is not None:
+        atomic_torch_save(td, local)
+    return td
+
+
+#: the entries a file of transitions must hold (``--heldout FILE``)
+TRANSITION_KEYS = ("observation", "action", ("next", "observation"))
+
+
+def load_transitions(path: str | Path, state_dim: int, action_dim: int) -> TensorDictBase:
+    """Transitions from ``path`` (a TensorDict saved with ``torch.save``, or a memmap directory
+    written by ``TensorDict.memmap``), flattened to ``(N,)`` and cast to float32; a ValueError
+    names what is missing or mis-shaped."""
+    from tensordict import TensorDict
+
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"--heldout {str(path)!r}: no such file or directory")
+    try:
+        td = TensorDict.load_memmap(path) if path.is_dir() else torch.load(path, weights_only=False)
+    except Exception as e:  # noqa: BLE001 (any unreadable file is the same one-line error)
+        raise ValueError(f"--heldout {str(path)!r}: cannot read it ({type(e).__name__}: {e}); expected a TensorDict "
+                         "saved with torch.save or a memmap directory") from None
+    if not isinstance(td, TensorDictBase):
+        raise ValueError(f"--heldout {str(path)!r} holds a {type(td).__name__}: expected a TensorDict with "
+                         "observation, action and ('next', 'observation')")
+    if td.batch_dims == 0:  # saved without a batch size: the leading dimension is the transitions'
+        td = td.auto_batch_size_(batch_dims=1)
+    want = {"observation": state_dim, "action": action_dim, ("next", "observation"): state_dim}
+    for key, dim in want.items():
+        if key not in td.keys(True):
+            raise ValueError(f"--heldout {str(path)!r} has no {key!r} entry: expected observation, action and "
+                             "('next', 'observation')")
+        shape = tuple(td.get(key).shape[td.batch_dims:])
+        if shape != (dim,):
+            raise ValueError(f"--heldout {str(path)!r}: {key!r} has per-transition shape {shape}, expected ({dim},) "
+                             "for this env")
+    out = td.select(*TRANSITION_KEYS).reshape(-1).to_tensordict()
+    if out.shape[0] == 0:
+        raise ValueError(f"--heldout {str(path)!r} holds no transitions")
+    return out.apply(lambda x: x.float())
 
 
 def reference_set(entry: EnvEntry, run: RunDir | None, heldout: TensorDictBase, seed: int = 54321,

@@ -10,7 +10,7 @@ import torch
 from torchrl_softae.envs.model_env import PROPAGATION_MODES
 from torchrl_softae.modules import EnsembleWorldModel
 from torchrl_softae.pipeline.builders import build_planner_policy, build_world_model
-from torchrl_softae.pipeline.catalog import get_env_entry
+from torchrl_softae.pipeline.catalog import get_env_entry, get_task, get_tasks, heldout_note, run_entry
 from torchrl_softae.pipeline.config import ConfigError, ExploreConfig, apply_overrides
 from torchrl_softae.pipeline.data import ModelAccuracy, episode_seed, make_real_env, seed_everything
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir
@@ -164,7 +164,7 @@ REFERENCE_POLICIES = {"random": "random actions, no model", "zero": "no control 
 
 
 @torch.no_grad()
-def reference_returns(env: str, task: str, policy: str = "random", episodes: int = 3, seed: int = 0) -> list[float]:
+def reference_returns(env: str, task: str | Task, policy: str = "random", episodes: int = 3, seed: int = 0) -> list[float]:
     """Task returns without a model, on the same episodes (seeds) as :func:`zero_shot`.
 
     ``policy="random"``: uniform random actions from the action spec (what random exploration
@@ -173,9 +173,11 @@ def reference_returns(env: str, task: str, policy: str = "random", episodes: int
     """
     if policy not in REFERENCE_POLICIES:
         raise ValueError(f"reference policy {policy!r}: expected one of {', '.join(REFERENCE_POLICIES)}")
-    entry = get_env_entry(env)
-    if task not in entry.tasks:
-        raise ConfigError(f"unknown task {task!r} for env {env!r}; valid tasks: {', '.join(sorted(entry.tasks))}")
+    if isinstance(task, str):
+        try:
+            task = get_task(get_env_entry(env), task)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
 
     def reference_policy(real, s, episode_task):
         if policy == "random":
@@ -184,7 +186,7 @@ def reference_returns(env: str, task: str, policy: str = "random", episodes: int
         centre = (spec.space.low + spec.space.high) / 2
         return lambda td: td.set("action", centre.expand(*td.batch_size, *centre.shape).clone())
 
-    return _task_rollouts(env, entry.tasks[task], episodes, seed, reference_policy)["returns"]
+    return _task_rollouts(env, task, episodes, seed, reference_policy)["returns"]
 
 
 def evaluate_run(
@@ -192,7 +194,8 @@ def evaluate_run(
     propagation: str = "mean", progress: bool = True, planner_overrides: list[str] | None = None,
     references: bool = False,
 ) -> dict:
-    """Zero-shot returns on ``tasks`` (default: all of the env's) and held-out normalized MSE.
+    """Zero-shot returns on ``tasks`` (names of the env's tasks or ``module:attr`` references;
+    default: all of the env's) and held-out normalized MSE.
 
     ``planner_overrides`` (``["planner.horizon=30", ...]``) plan the tasks differently from the
     exploration. Results are written to ``RUN/eval/TASK.json`` (``TASK@key=value,...json`` with
@@ -207,32 +210,32 @@ def evaluate_run(
             raise ConfigError(f"evaluate only overrides planner settings (planner.KEY=VALUE), got {bad}")
         apply_overrides(cfg, planner_overrides).validate()
     run = RunDir(run_dir)
-    entry = get_env_entry(cfg.env)
-    names = tasks or sorted(entry.tasks)
-    for name in names:
-        if name not in entry.tasks:
-            raise ConfigError(f"unknown task {name!r} for env {cfg.env!r}; valid tasks: {', '.join(sorted(entry.tasks))}")
+    entry = run_entry(cfg)
+    try:
+        chosen = {k: t for name in (tasks or sorted(entry.tasks)) for k, t in get_tasks(entry, name).items()}
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     out = {"env": cfg.env, "method": cfg.method, "seed": cfg.seed, "episodes_explored": state["episode"] + 1,
-           "transitions": state["num_transitions"]}
+           "transitions": state["num_transitions"], "heldout_set": heldout_note(cfg) or "the env's own"}
     accuracy = ModelAccuracy(entry, run, cfg.heldout_size, announce=print if progress else None)
     out.update(accuracy(model))
     out.update(accuracy.baselines)
     run.write_json(run.eval_dir / "model_accuracy.json", dict(out))
     out["tasks"] = {}
-    for name in names:
-        res = zero_shot(cfg, model, entry.tasks[name], episodes=episodes, seed=seed, propagation=propagation, progress=progress)
+    for name, task in chosen.items():
+        res = zero_shot(cfg, model, task, episodes=episodes, seed=seed, propagation=propagation, progress=progress)
         res["mean_return"] = float(np.mean(res["returns"]))
         # which model was evaluated: a resumed, longer exploration makes this result stale
         res.update(propagation=propagation, beta=cfg.beta, seed=seed, episodes=episodes, planner=dict(vars(cfg.planner)),
-                   episodes_explored=out["episodes_explored"])
+                   episodes_explored=out["episodes_explored"], success_metric=task.success_metric)
         run.write_json(run.eval_dir / eval_file_name(name, planner_overrides), res)
         out["tasks"][name] = res
     if references:
-        out["references"] = write_references(run, cfg.env, names, episodes, seed)
+        out["references"] = write_references(run, cfg.env, chosen, episodes, seed)
     return out
 
 
-def write_references(run: RunDir, env: str, tasks: list[str], episodes: int, seed: int) -> dict:
+def write_references(run: RunDir, env: str, tasks: dict[str, Task], episodes: int, seed: int) -> dict:
     """The model-free references' returns on ``tasks`` (the evaluation's episodes), merged into
     ``RUN/eval/references.json``: ``{"episodes", "seed", "returns": {label: {task: [...]}}}``."""
     path = run.eval_dir / REFERENCES_FILE
@@ -241,9 +244,9 @@ def write_references(run: RunDir, env: str, tasks: list[str], episodes: int, see
         known = {"episodes": episodes, "seed": seed, "returns": {}}
     for policy, label in REFERENCE_POLICIES.items():
         per_task = known["returns"].setdefault(label, {})
-        for task in tasks:
-            if task not in per_task:
-                per_task[task] = reference_returns(env, task, policy, episodes, seed)
+        for name, task in tasks.items():
+            if name not in per_task:
+                per_task[name] = reference_returns(env, task, policy, episodes, seed)
     run.write_json(path, known)
     return known
 

@@ -22,7 +22,7 @@ from torchrl.collectors import Collector
 from torchrl_softae.envs.guard import EnvFaultWarning
 from torchrl_softae.objectives import EnsembleLoss, EnsembleTrainer
 from torchrl_softae.pipeline.builders import build_exploration_policy, build_world_model
-from torchrl_softae.pipeline.catalog import get_env_entry
+from torchrl_softae.pipeline.catalog import get_task, run_entry
 from torchrl_softae.pipeline.config import ConfigError, ExploreConfig, flat_config
 from torchrl_softae.pipeline.data import (ModelAccuracy, coverage, episode_seed, heldout_set, make_real_env,
                                           normalized_mse, projection_bounds, seed_everything)
@@ -71,8 +71,8 @@ class Explorer:
         self.echo = echo
         self.announce_resume = announce_resume
         self.on_episode = on_episode  # called with each finished (checkpointed) episode's row
-        self.entry = get_env_entry(cfg.env)
-        self.task = self.entry.tasks.get(cfg.task) if cfg.task else None
+        self.entry = run_entry(self.cfg)
+        self.task = get_task(self.entry, cfg.task) if cfg.task else None
 
     # ------------------------------------------------------------------ set-up / resume
     def _check_config(self) -> str | None:

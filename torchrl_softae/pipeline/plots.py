@@ -104,20 +104,44 @@ def _references(run: RunDir) -> dict[str, dict]:
     return json.loads(path.read_text())["returns"] if path.exists() else {}
 
 
-def _success_metric(entry, task: str) -> str | None:
-    t = entry.tasks.get(task.split("@", 1)[0])
+def _success_metric(entry, task: str, results=()) -> str | None:
+    """The task's success metric: as its evaluation results record it, else its catalog task's."""
+    for res in results:
+        if "success_metric" in res:
+            return res["success_metric"]
+    t = None if entry is None else entry.tasks.get(task.split("@", 1)[0])
     return None if t is None else t.success_metric
+
+
+def _run_entry(config: dict):
+    """The entry of a run's config, or ``None`` where its env cannot be built here (an outside
+    env's module is not importable where an archived report is redrawn)."""
+    from torchrl_softae.pipeline.catalog import run_entry
+    from torchrl_softae.pipeline.config import ExploreConfig
+
+    try:
+        return run_entry(ExploreConfig.from_dict(config))
+    except ValueError:
+        return None
+
+
+def _heldout_title(config: dict) -> str:
+    from torchrl_softae.pipeline.catalog import heldout_note
+
+    note = heldout_note(config)
+    return f"\n{note}" if note else ""
 
 
 def plot_run(run_dir: str | Path) -> list[Path]:
     """Coverage heatmap, learning curves and task evaluation of one run."""
-    from torchrl_softae.pipeline.catalog import get_env_entry
+    from torchrl_softae.pipeline.catalog import run_entry
+    from torchrl_softae.pipeline.config import ExploreConfig
 
     plt = _plt()
     run = RunDir(run_dir)
     state = run.load()
     cfg = state["config"]
-    entry = get_env_entry(cfg["env"])
+    entry = run_entry(ExploreConfig.from_dict(cfg))
     history = state["history"]
     name = f"{cfg['env']} / {cfg['method']} / seed {cfg['seed']}"
     budget = f"{state['episode'] + 1} episodes, {state['num_transitions']} transitions"
@@ -133,7 +157,7 @@ def plot_run(run_dir: str | Path) -> list[Path]:
     axes[1].plot(ep, [r["coverage"] for r in history], "o-", color="C1")
     axes[1].set_xlabel("exploration episode")
     axes[1].set_ylabel("coverage (fraction of cells)")
-    fig.suptitle(f"{name} ({budget})")
+    fig.suptitle(f"{name} ({budget}){_heldout_title(cfg)}", fontsize=10)
     written.append(_save(fig, run.plots / "learning_curves.png"))
 
     curves = sorted({k for r in history for k in r if k.startswith("return/")})
@@ -150,7 +174,7 @@ def plot_run(run_dir: str | Path) -> list[Path]:
 
     evals = _evals(run)
     if evals:
-        metrics = {t: _success_metric(entry, t) for t in evals}
+        metrics = {t: _success_metric(entry, t, [evals[t]]) for t in evals}
         with_metric = [t for t in evals if metrics[t] and metrics[t] in (evals[t]["metrics"] or [{}])[0]]
         ncols = 2 if with_metric else 1
         fig, axes = plt.subplots(1, ncols, figsize=(4.5 * ncols, 3.6), squeeze=False)
@@ -207,7 +231,7 @@ def _comparison_bars(by_method: dict[str, list[dict]], entry, title: str, budget
     one run's ``history`` (per episode), ``evals`` (task -> evaluation) and ``references``
     (label -> task -> model-free returns)."""
     plt = _plt()
-    env = entry.env_id
+    env = entry.env_id if entry is not None else next(iter(by_method.values()))[0]["config"]["env"]
     methods = label_order(by_method)
     colors = [method_color(m) for m in methods]  # a method's colour in every panel and figure
     written = []
@@ -220,13 +244,15 @@ def _comparison_bars(by_method: dict[str, list[dict]], entry, title: str, budget
     ax.set_ylim(allv.min() / 3, allv.max() * 3)  # a decade of room: bar heights stay comparable
     ax.set_ylabel("held-out normalized MSE")
     # the env on a line of its own: a figure this narrow cut the one-line title off
-    ax.set_title(f"{env}\n{budget}, {seed_text}\nbar: mean, whiskers: min-max, dots: seeds", fontsize=9)
+    note = _heldout_title(next(iter(by_method.values()))[0]["config"])
+    ax.set_title(f"{env}\n{budget}, {seed_text}\nbar: mean, whiskers: min-max, dots: seeds{note}", fontsize=9)
     written.append(_save(fig, out_dir / f"{prefix}mse_bars.png"))
 
     tasks = sorted({t for m in methods for rec in by_method[m] for t in rec["evals"]})
     if not tasks:
         return written
-    metric_of = {t: _success_metric(entry, t) for t in tasks}
+    metric_of = {t: _success_metric(entry, t, [rec["evals"][t] for m in methods for rec in by_method[m]
+                                                if t in rec["evals"]]) for t in tasks}
     rows = 2 if any(metric_of.values()) else 1
     fig, axes = plt.subplots(rows, len(tasks), figsize=(max(3.4 * len(tasks) + 1, 6.5), 3.2 * rows),
                              squeeze=False)  # wide enough for the title
@@ -263,8 +289,6 @@ def _budget_groups(records: list[dict], warn, where: Path):
     """Per (env, budget) of ``records``, in order: the runs by row label (runs of a method that
     differ in more than the seed apart, ``row_labels``), the env entry, the title and its parts,
     and the file-name prefix. Never pooled across budgets."""
-    from torchrl_softae.pipeline.catalog import get_env_entry
-
     budgets: dict[tuple, list] = defaultdict(list)
     for rec in records:
         budgets[(rec["config"]["env"], rec["episodes"], rec["transitions"])].append(rec)
@@ -279,7 +303,7 @@ def _budget_groups(records: list[dict], warn, where: Path):
         seed_text = (f"{seeds[0]} seed{'s' * (seeds[0] != 1)}" if len(seeds) == 1
                      else f"{min(seeds)}-{max(seeds)} seeds")
         prefix = f"{env}_{transitions}tr_" if len(budgets) > 1 else ""
-        yield by_method, get_env_entry(env), (f"{env}, {budget}, {seed_text}", budget, seed_text), prefix
+        yield by_method, _run_entry(rs[0]["config"]), (f"{env}, {budget}, {seed_text}", budget, seed_text), prefix
 
 
 def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> list[Path]:
@@ -304,6 +328,9 @@ def plot_comparison(folder: str | Path, warn=None, only: list | None = None) -> 
     written = []
     for by_method, entry, (title, budget, seed_text), prefix in _budget_groups(records, warn, folder):
         written += _comparison_bars(by_method, entry, title, budget, seed_text, out_dir, prefix)
+        if entry is None:
+            warn(f"softae plot: {title}: the env cannot be built here, so no coverage heatmap")
+            continue
         methods = label_order(by_method)
         points = {f"{m} ({len(by_method[m])} seed{'s' * (len(by_method[m]) != 1)}, cov. "
                   f"{np.mean([rec['history'][-1]['coverage'] for rec in by_method[m]]):.2f})":

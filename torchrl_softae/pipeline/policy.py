@@ -132,7 +132,7 @@ def train_policy(
     ``checkpoint_updates`` updates; rerunning the same command after a kill resumes and gives the
     numbers of an uninterrupted run. Returns the evaluation (also written to ``eval.json``).
     """
-    from torchrl_softae.pipeline.catalog import get_env_entry
+    from torchrl_softae.pipeline.catalog import get_env_entry, get_task
     from torchrl_softae.pipeline.evaluate import load_run
 
     cfg, model, state = load_run(run_dir)
@@ -141,15 +141,20 @@ def train_policy(
         raise ConfigError(f"softae policy only overrides policy settings (policy.KEY=VALUE), got {bad}")
     apply_overrides(cfg, list(overrides or [])).validate()
     entry = get_env_entry(cfg.env)
-    if task not in entry.tasks:
-        raise ConfigError(f"unknown task {task!r} for env {cfg.env!r}; valid tasks: {', '.join(sorted(entry.tasks))}")
+    try:
+        the_task = get_task(entry, task)
+        run_task = None if cfg.task is None else get_task(entry, cfg.task)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    task = the_task.name  # a module:attr reference stands for its Task's name in folders and results
     if episodes < 1 or (updates is not None and updates < 0) or checkpoint_updates < 1:
         raise ConfigError(f"--episodes={episodes}, --updates={updates}, --checkpoint-every={checkpoint_updates}: "
                           "expected episodes >= 1, updates >= 0, checkpoint-every >= 1")
     run = RunDir(run_dir)
     real = stored_transitions(run, state)
-    learner = build_policy_learner(cfg.policy, model, entry.specs()[1], entry.tasks[task], propagation, cfg.beta, seed)
-    own = (get_method(cfg.method).trains_policy and cfg.task == task and get_method(cfg.method).propagation == propagation
+    learner = build_policy_learner(cfg.policy, model, entry.specs()[1], the_task, propagation, cfg.beta, seed)
+    own = (get_method(cfg.method).trains_policy and run_task is not None and run_task.name == task
+           and get_method(cfg.method).propagation == propagation
            and "policy" in state)
     if own:
         learner.load_state_dict(state["policy"])
@@ -198,7 +203,7 @@ def train_policy(
     if bar is not None:
         bar.close()
     seconds = time.perf_counter() - t0
-    res = evaluate_policy(cfg.env, entry.tasks[task], learner, episodes, seed)
+    res = evaluate_policy(cfg.env, the_task, learner, episodes, seed)
     res.update(setup, updates_done=done, train_seconds=seconds, run_method=cfg.method, env=cfg.env,
                run_seed=cfg.seed)
     res.pop("policy")

@@ -108,7 +108,7 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
 
     ``merge``: earlier ``report.json`` files whose archived runs join the runs below ``root``; a
     run dir below ``root`` replaces an archived run of the same ``ENV/NAME`` (it is newer)."""
-    from torchrl_softae.pipeline.catalog import get_env_entry
+    from torchrl_softae.pipeline.catalog import env_ids, get_env_entry, heldout_note
 
     warn = warn or (lambda m: print(m, file=sys.stderr))
     root = Path(root)
@@ -133,11 +133,14 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
         by_method = defaultdict(list)
         for r, label in zip(rs_of_budget, row_labels([r["config"] for r in rs_of_budget])):
             by_method[label].append(r)
-        entry = get_env_entry(env)
+        catalog_tasks = get_env_entry(env).tasks if env in env_ids() else {}
         # evaluations planned with overrides keep their own column (TASK@key=value)
         tasks = sorted({t for rs in by_method.values() for r in rs for t in r["evals"] if t != "references"})
-        base = {t: t.split("@")[0] for t in tasks}
-        metric_of = {t: entry.tasks[base[t]].success_metric if base[t] in entry.tasks else None for t in tasks}
+        # the success metric as the evaluation recorded it (older results: the catalog task's)
+        recorded = {t: r["evals"][t]["success_metric"] for rs in by_method.values() for r in rs for t in tasks
+                    if t in r["evals"] and "success_metric" in r["evals"][t]}
+        metric_of = {t: recorded[t] if t in recorded else getattr(catalog_tasks.get(t.split("@")[0]), "success_metric", None)
+                     for t in tasks}
         # the held-out error by group of state dimensions where the env defines groups (the arm:
         # tip, positions, velocities, ...), in the order the runs logged them
         groups = list(dict.fromkeys(k.split("/", 1)[1] for rs in by_method.values() for r in rs
@@ -191,8 +194,11 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
                     cells.append("-")
             cells += ["-"] * len(policy_tasks)
             md.append("| " + " | ".join(cells) + " |")
+        notes = sorted({heldout_note(r["config"]) for rs in by_method.values() for r in rs} - {""})
+        md += [""] + [f"*{note}*" for note in notes] if notes else []
         md.append("")
         tables.append({"env": env, "episodes": episodes, "transitions": transitions, "columns": head,
+                       "heldout_set": notes,
                        "rows": [{k: v for k, v in row.items() if k != "markdown"} for row in rows],
                        "references": refs})
     archived = defaultdict(list)

@@ -61,16 +61,20 @@ class Trial:
     policy: dict | None = None  # the sweep file's ``policy`` block
     seed: int = 0
     method: str = "softae"
+    # where the driver stood: a module:attr env or task is imported from there in every worker
+    # (Tune runs a trial in its own directory)
+    search_path: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict:
         """What a trial process (local or Ray) needs to run it."""
         return {"name": self.name, "argv": self.argv, "run_dir": str(self.run_dir), "episodes": self.episodes,
-                "evaluate": self.evaluate, "policy": self.policy, "seed": self.seed, "method": self.method}
+                "evaluate": self.evaluate, "policy": self.policy, "seed": self.seed, "method": self.method,
+                "search_path": self.search_path}
 
     @classmethod
     def from_json(cls, d: dict) -> "Trial":
         return cls(d["name"], d["argv"], Path(d["run_dir"]), d["episodes"], d["evaluate"], policy=d.get("policy"),
-                   seed=d.get("seed", 0), method=d.get("method", "softae"))
+                   seed=d.get("seed", 0), method=d.get("method", "softae"), search_path=d.get("search_path", []))
 
     def policy_propagation(self) -> str:
         """The propagation of its task policies: the block's, else the method's own for methods that
@@ -152,10 +156,12 @@ def expand(spec: dict, root: str | Path) -> tuple[list[Trial], int]:
         except ConfigError as e:
             raise ConfigError(f"sweep run {run}: {e}") from None
         run_dir = Path(run_dir_for(cfg, str(root))).resolve()
-        name = f"{cfg.env}/{run_dir.name}"
+        name = f"{run_dir.parent.name}/{run_dir.name}"
+        if cfg.heldout_file:  # absolute: a Ray trial runs in its own directory
+            argv.append(f"--heldout={cfg.heldout_file}")
         trials.append(Trial(name, argv[1:] + [f"--run-dir={run_dir}"], run_dir, cfg.episodes,
                             _evaluate_block(spec, cfg), dict(run), policy=_policy_block(spec, cfg), seed=cfg.seed,
-                            method=cfg.method))
+                            method=cfg.method, search_path=[os.getcwd()]))
     return trials, total - len(trials)
 
 
@@ -166,7 +172,6 @@ EVALUATE_KEYS = ("tasks", "episodes", "propagation", "planner", "references")
 def _evaluate_block(spec: dict, cfg) -> dict | None:
     """The sweep's ``evaluate`` block, checked against the run's env before anything runs."""
     from torchrl_softae.envs.model_env import PROPAGATION_MODES
-    from torchrl_softae.pipeline.catalog import get_env_entry
 
     block = spec.get("evaluate")
     if block is None:
@@ -176,33 +181,40 @@ def _evaluate_block(spec: dict, cfg) -> dict | None:
     unknown = sorted(set(block) - set(EVALUATE_KEYS))
     if unknown:
         raise ConfigError(f"evaluate block: unknown key(s) {', '.join(map(repr, unknown))}; valid: {', '.join(EVALUATE_KEYS)}")
-    entry = get_env_entry(cfg.env)
-    for task in block.get("tasks") or []:
-        if task not in entry.tasks:
-            raise ConfigError(f"evaluate block: unknown task {task!r} for env {cfg.env!r}; valid tasks: "
-                              f"{', '.join(sorted(entry.tasks))}")
+    block = dict(block)
+    block["task_names"] = _task_names("evaluate", block.get("tasks") or [], cfg)
     if block.get("propagation", "mean") not in PROPAGATION_MODES:
         raise ConfigError(f"evaluate block: propagation {block['propagation']!r}; valid: {', '.join(PROPAGATION_MODES)}")
     if not isinstance(block.get("references", False), bool):
         raise ConfigError(f"evaluate block: references {block['references']!r}; expected true or false")
-    return dict(block)
+    return block
+
+
+def _task_names(where: str, tasks: list, cfg) -> list[str]:
+    """The names of the tasks a block lists (a ``module:attr`` reference may stand for several),
+    checked against the run's env before anything runs."""
+    from torchrl_softae.pipeline.catalog import get_env_entry, get_tasks
+
+    try:
+        entry = get_env_entry(cfg.env)
+        return [name for task in tasks for name in get_tasks(entry, str(task))]
+    except ValueError as e:
+        raise ConfigError(f"{where} block: {e}") from None
 
 
 def _policy_block(spec: dict, cfg) -> dict | None:
     """The sweep's ``policy`` block, checked against the run's env before anything runs."""
-    from torchrl_softae.pipeline.catalog import get_env_entry
-
     block = spec.get("policy")
     if block is None:
         return None
     if not isinstance(block, dict) or not block.get("tasks"):
         raise ConfigError("the sweep's policy block needs 'tasks: [...]' (and optionally episodes, propagation, updates)")
-    entry = get_env_entry(cfg.env)
-    for task in block["tasks"]:
-        if task not in entry.tasks:
-            raise ConfigError(f"policy block: unknown task {task!r} for env {cfg.env!r}; valid tasks: "
-                              f"{', '.join(sorted(entry.tasks))}")
-    return dict(block)
+    block = dict(block)
+    block["task_names"] = _task_names("policy", block["tasks"], cfg)
+    if len(block["task_names"]) != len(block["tasks"]):
+        raise ConfigError(f"policy block: tasks {block['tasks']} name {len(block['task_names'])} tasks: a SAC policy "
+                          "is trained per task, so list each task (or a reference naming exactly one)")
+    return block
 
 
 def _policies_trained(trial: Trial) -> bool:
@@ -213,7 +225,7 @@ def _policies_trained(trial: Trial) -> bool:
         return True
     return all((trial.run_dir / POLICIES_DIR / policy_dir_name(task, trial.policy_propagation(), trial.seed,
                                                                trial.episodes) / "eval.json").exists()
-               for task in trial.policy["tasks"])
+               for task in trial.policy["task_names"])
 
 
 def trial_status(trial: Trial) -> str:
@@ -237,7 +249,7 @@ def _evaluated(trial: Trial) -> bool:
     if not trial.evaluate:
         return True
     eval_dir = trial.run_dir / "eval"
-    tasks = trial.evaluate.get("tasks") or []
+    tasks = trial.evaluate["task_names"]
     for task in tasks:
         f = eval_dir / eval_file_name(task, _planner_overrides(trial.evaluate))
         if not f.exists() or json.loads(f.read_text()).get("episodes_explored") != trial.episodes:
@@ -260,6 +272,9 @@ def run_trial(trial: Trial, threads: int, on_episode=None) -> dict:
     from torchrl_softae.pipeline.arguments import config_from_args, explore_parser
     from torchrl_softae.pipeline.guards import RunLock
 
+    for path in trial.search_path:
+        if path not in sys.path:
+            sys.path.append(path)
     torch.set_num_threads(threads)
     keep_freed_memory()  # as the softae commands do (a Ray worker does not run them)
     cfg = config_from_args(explore_parser().parse_args(trial.argv))
@@ -289,7 +304,7 @@ def _run_trial(trial: Trial, cfg, on_episode) -> dict:
             res = train_policy(trial.run_dir, task, propagation=trial.policy_propagation(),
                                updates=trial.policy.get("updates"), episodes=int(trial.policy.get("episodes", 5)),
                                seed=trial.seed, progress=False, echo=None)
-            row[f"policy_return/{task}"] = res["mean_return"]
+            row[f"policy_return/{res['task']}"] = res["mean_return"]
         if on_episode is not None:
             on_episode({**history[-1], **row, "policies_trained": 1})
     return row
@@ -450,6 +465,11 @@ def _error_line(trial) -> str:
     return (f"failed with exit code {code.group(1)}" if code else "failed") + (f": {last[-1][:300]}" if last else "")
 
 
+def _tune_name(trial) -> str:
+    """A Tune trial's name and folder: ours without the characters a path or URI would parse."""
+    return trial.config["trial"]["name"].replace("/", "_").replace(":", "_")
+
+
 def run_ray(trials: list[Trial], cpus_per_trial: int, max_failures: int, address: str | None = None,
             storage: str | None = None, num_cpus: int | None = None, echo=print, log_file: Path | None = None,
             dashboard: bool = False) -> dict:
@@ -504,8 +524,7 @@ def _run_ray(trials, cpus_per_trial, max_failures, address, storage, num_cpus, e
     tuner = tune.Tuner(
         tune.with_resources(_ray_trainable, {"cpu": cpus_per_trial}),
         param_space={"trial": tune.grid_search([{**t.to_json(), "threads": cpus_per_trial} for t in trials])},
-        tune_config=tune.TuneConfig(trial_name_creator=lambda tr: tr.config["trial"]["name"].replace("/", "_"),
-                                    trial_dirname_creator=lambda tr: tr.config["trial"]["name"].replace("/", "_")),
+        tune_config=tune.TuneConfig(trial_name_creator=_tune_name, trial_dirname_creator=_tune_name),
         run_config=tune.RunConfig(name=f"softae-sweep-{int(time.time())}", storage_path=storage_path,
                                   failure_config=tune.FailureConfig(max_failures=max_failures),
                                   verbose=0 if quiet else 2, callbacks=[Progress()]),
