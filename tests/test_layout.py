@@ -57,18 +57,60 @@ def test_each_subpackage_imports_alone():
     assert not failures, "\n".join(failures)
 
 
-def test_old_import_paths_alias_the_moved_modules():
-    import torchrl_softae.explore as old_explore
-    import torchrl_softae.pipeline.explore as new_explore
-    from torchrl_softae.cli import main  # the console script's old path
-    from torchrl_softae.envs.sopra import SafetyLayer, SoPrAEnv
-    from torchrl_softae.envs.sopra.safety import SafetyLayer as SafetyLayer2
-    from torchrl_softae.envs.soft_arm import SoftArmEnv, reach_reward  # noqa: F401
-    from torchrl_softae.pipeline.cli import main as new_main
+def _import_graph(root: Path) -> dict[str, set[str]]:
+    """Module -> the package's modules it imports (anywhere in it, also inside functions). A package's
+    ``__init__`` only hands names on and is no node: ``from pkg import mod`` is an arrow to ``pkg.mod``."""
+    import ast
 
-    assert old_explore is new_explore and main is new_main and SafetyLayer is SafetyLayer2
-    assert new_explore.__spec__.name == "torchrl_softae.pipeline.explore"  # the alias left it intact
-    assert SoPrAEnv.__module__ == "torchrl_softae.envs.robots.sopra.env"
+    modules = {".".join(p.relative_to(root.parent).with_suffix("").parts): p for p in root.rglob("*.py")
+               if p.name != "__init__.py"}
+    graph = {}
+    for name, path in modules.items():
+        package = name.rsplit(".", 1)[0]
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                targets |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    parts = package.split(".")
+                    base = ".".join(parts[: len(parts) - node.level + 1] + ([base] if base else []))
+                targets |= {f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names}
+        graph[name] = {t for t in targets if t in modules and t != name}
+    return graph
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle of ``graph`` (its modules in order), or ``None``."""
+    state, stack = {}, []
+
+    def visit(node):
+        state[node] = "open"
+        stack.append(node)
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == "open":
+                return stack[stack.index(nxt):] + [nxt]
+            if nxt not in state and (found := visit(nxt)):
+                return found
+        state[node] = "done"
+        stack.pop()
+        return None
+
+    for node in sorted(graph):
+        if node not in state and (found := visit(node)):
+            return found
+    return None
+
+
+def test_no_import_cycle_in_the_package():
+    graph = _import_graph(Path(__file__).parents[1] / "torchrl_softae")
+    assert "torchrl_softae.pipeline.records" in graph["torchrl_softae.pipeline.plots"]  # arrows are read
+    assert "torchrl_softae.pipeline.catalog" in graph["torchrl_softae.pipeline.config"]  # inside functions too
+    cycle = _cycle(graph)
+    assert cycle is None, " -> ".join(cycle)
+    # the checker finds a cycle where there is one
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
 
 
 def test_one_env_list_drives_gymnasium_and_the_catalog():

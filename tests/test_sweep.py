@@ -211,7 +211,7 @@ def test_local_processes_sweep_resumes_a_killed_trial(tmp_path, capsys, monkeypa
 
 
 def test_row_labels_keep_apart_runs_of_a_method_that_differ_in_more_than_the_seed():
-    from torchrl_softae.pipeline.methods import label_order, row_labels
+    from torchrl_softae.pipeline.labels import label_order, row_labels
 
     def cfg(method, seed, beta=2.0, horizon=10, episodes=5):
         return {"method": method, "seed": seed, "beta": beta, "episodes": episodes, "wandb": "disabled",

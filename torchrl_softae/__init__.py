@@ -15,9 +15,7 @@ commands call it) spares planners the page faults of glibc handing large tensors
 """
 __version__ = "0.1.0"
 
-from torchrl_softae import _moved
 from torchrl_softae.allocator import keep_freed_memory  # noqa: F401 (public)
 from torchrl_softae.envs.robots import register_gym_ids as _register_gym_ids
 
-_moved.install()
 _register_gym_ids()

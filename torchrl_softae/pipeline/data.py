@@ -15,7 +15,7 @@ from torchrl.envs import EnvBase, StepCounter, TransformedEnv
 
 from torchrl_softae.envs.guard import GuardedEnv
 from torchrl_softae.modules import EnsembleWorldModel
-from torchrl_softae.pipeline.catalog import EnvEntry
+from torchrl_softae.pipeline.entries.entry import EnvEntry
 from torchrl_softae.pipeline.runs import RunDir, atomic_torch_save
 from torchrl_softae.seeding import derive_seed
 

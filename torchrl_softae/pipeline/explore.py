@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 
 from torchrl_softae.envs.guard import EnvFaultWarning

@@ -15,8 +15,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchrl_softae.pipeline.methods import METHOD_NAMES, label_order, row_labels
-from torchrl_softae.pipeline.report import is_finished, read_archive
+from torchrl_softae.pipeline.labels import label_order, row_labels
+from torchrl_softae.pipeline.methods import METHOD_NAMES
+from torchrl_softae.pipeline.records import is_finished, read_archive
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, atomic_savefig, run_dirs_below
 from torchrl_softae.tasks.base import metric_label
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 
 from torchrl_softae.envs.references import EnvReference, gym_max_episode_steps, resolve_env
-from torchrl_softae.pipeline.catalog import EnvEntry
+from torchrl_softae.pipeline.entries.entry import EnvEntry
 from torchrl_softae.references import BadReference
 from torchrl_softae.seeding import derive_seed
 

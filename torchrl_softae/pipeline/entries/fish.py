@@ -8,7 +8,7 @@ import numpy as np
 from tensordict import TensorDict
 
 from torchrl_softae.envs.robots import EnvRecord
-from torchrl_softae.pipeline.catalog import EnvEntry
+from torchrl_softae.pipeline.entries.entry import EnvEntry
 from torchrl_softae.pipeline.entries.scripted import gym_env_with_info, scripted_rollouts
 
 

@@ -9,7 +9,7 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_softae.envs.robots import EnvRecord
-from torchrl_softae.pipeline.catalog import EnvEntry
+from torchrl_softae.pipeline.entries.entry import EnvEntry
 from torchrl_softae.tasks.pendulum import pendulum_angle
 
 __all__ = ["entry"]

@@ -17,7 +17,7 @@ from tensordict import TensorDict
 from torchrl_softae.envs.robots import EnvRecord
 from torchrl_softae.envs.robots.soft_arm import (arm_layout, heldout_transitions, random_action_transitions,
                                                  workspace_heldout)
-from torchrl_softae.pipeline.catalog import EnvEntry
+from torchrl_softae.pipeline.entries.entry import EnvEntry
 from torchrl_softae.tasks.soft_arm import tip_position
 
 TRANSITIONS_PER_TARGET = 35  # the paper: 17,451 transitions / 500 targets

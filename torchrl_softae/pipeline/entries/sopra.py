@@ -7,7 +7,7 @@ from tensordict import TensorDict
 
 from torchrl_softae.envs.robots import EnvRecord
 from torchrl_softae.envs.robots.sopra.env import SoPrAEnv
-from torchrl_softae.pipeline.catalog import EnvEntry
+from torchrl_softae.pipeline.entries.entry import EnvEntry
 
 __all__ = ["entry"]
 
