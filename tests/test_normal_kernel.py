@@ -5,7 +5,7 @@ import torch
 
 from torchrl_softae.modules import normal_kernel
 
-pytestmark = pytest.mark.skipif(not normal_kernel.available(), reason="the normal kernel was not built (no C compiler)")
+pytestmark = pytest.mark.skipif(not normal_kernel.available(), reason="the normal kernel is not loaded (not built, or SOFTAE_KERNELS=0)")
 
 
 def test_draws_are_standard_normal():

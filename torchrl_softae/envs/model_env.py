@@ -212,8 +212,8 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     def _with_noise(self, nxt, noise_std):
         if noise_std is None:
             return nxt
-        # the counter-based draws where they apply (normal_kernel.enabled), else torch.randn's
-        return _normal_kernel.add_scaled_randn(nxt, noise_std, self._generator)
+        # the counter-based draws where they apply (normal_kernel.enabled, the model's kernels), else torch.randn's
+        return _normal_kernel.add_scaled_randn(nxt, noise_std, self._generator, kernel=self.world_model.uses_kernels)
 
     def _propagate_mean(self, observation, action, eta, member_index, particles=1):
         mu, sigma, _, ale = self._moments(observation, action, particles=particles)

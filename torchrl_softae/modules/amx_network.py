@@ -13,11 +13,9 @@ from __future__ import annotations
 import torch
 
 from torchrl_softae.modules._fused_network import PackedLayer, PackedNetworkBase, prepare, run
+from torchrl_softae.modules.kernels import load_extension
 
-try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
-    from torchrl_softae.modules import _amx_network
-except ImportError:
-    _amx_network = None
+_amx_network = load_extension("_amx_network")  # after torch (None: not built, or SOFTAE_KERNELS=0)
 
 __all__ = ["RUNS", "available", "why_not", "cache_tag", "pack_layer", "pack_network", "forward", "prepare_forward",
            "PackedLayer", "PackedNetwork"]

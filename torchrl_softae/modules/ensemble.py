@@ -31,6 +31,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 from torchrl_softae.modules import moments_kernel as _moments_kernel
 from torchrl_softae.modules import paths
 from torchrl_softae.modules import silu_kernel as _silu_kernel
+from torchrl_softae.modules.kernels import kernels_allowed
 from torchrl_softae.modules.paths import INFERENCE_PATHS, WHOLE_NETWORK_KERNELS
 from torchrl_softae.modules.precision import onednn_bf16_available, resolve_planning_dtype
 from torchrl_softae.modules.rollouts import DeterministicRollout, SampledRollout, is_rollout_key
@@ -234,7 +235,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
         out_keys: Sequence = ("loc", "epistemic_std", "aleatoric_std"),
         symlog_observations: bool = False,
         device=None,
+        kernels: str = "auto",
     ):
+        self_kernels = kernels_allowed(kernels)  # a bad choice is refused before anything is built
         for name, value, low in (
             ("observation_dim", observation_dim, 1),
             ("action_dim", action_dim, 1),
@@ -254,6 +257,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
         self.ensemble_size = ensemble_size
         self.probabilistic = probabilistic
         self.symlog_observations = bool(symlog_observations)
+        self.kernels = kernels
+        #: whether this model may run compiled kernels (``kernels="auto"`` and not ``SOFTAE_KERNELS=0``)
+        self.uses_kernels = self_kernels
         sizes = [observation_dim + action_dim] + [num_cells] * depth
         out = 2 * observation_dim if probabilistic else observation_dim
         self.layers = nn.ModuleList(
@@ -444,7 +450,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
         silu = type(self.activation) is nn.SiLU
         usable = tuple(p for p in INFERENCE_PATHS
                        if (not p.endswith("-silu-kernel") or self._silu_kernel_applies())
-                       and (p not in WHOLE_NETWORK_KERNELS or (silu and WHOLE_NETWORK_KERNELS[p].available())))
+                       and (p not in WHOLE_NETWORK_KERNELS
+                            or (self.uses_kernels and silu and WHOLE_NETWORK_KERNELS[p].available())))
         if dtype is None:
             return usable
         return tuple(p for p in usable
@@ -464,7 +471,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
                                    f"{type(self.activation).__name__}, {kernel.why_not(dtype) or 'it runs here'}")
             if forced not in self.available_inference_paths():
                 raise RuntimeError(f"inference path {forced!r} needs nn.SiLU and the compiled kernel "
-                                   f"(activation {type(self.activation).__name__}, kernel built: {_silu_kernel.available()})")
+                                   f"(activation {type(self.activation).__name__}, kernel built: {_silu_kernel.available()}, kernels allowed: {self.uses_kernels})")
             if forced == "conv-fused" and not _onednn_runs(dtype):
                 raise RuntimeError(f"inference path 'conv-fused' in {dtype} needs oneDNN's bf16 convolution, which "
                                    "this CPU lacks (AVX512-BW/VL/DQ or AVX-NE-CONVERT); expected another path or fp32")
@@ -687,7 +694,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
                 nn.Sigmoid: "sigmoid"}.get(type(self.activation))
 
     def _silu_kernel_applies(self) -> bool:
-        return type(self.activation) is nn.SiLU and _silu_kernel.available()
+        return self.uses_kernels and type(self.activation) is nn.SiLU and _silu_kernel.available()
 
     def _activate_(self, x: torch.Tensor, silu_kernel: bool = False) -> torch.Tensor:
         """Activation in place on a fresh matmul output (inference only): a second large
@@ -872,7 +879,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         raw network output ``raw`` ``(L, N, C)`` at the flat states ``obs`` ``(N, d_s)``; flat
         ``(N, d_s)`` results."""
         d = self.observation_dim
-        fused = (self.fused_moments and not self.symlog_observations and _moments_kernel.applies(raw)
+        fused = (self.fused_moments and self.uses_kernels and not self.symlog_observations and _moments_kernel.applies(raw)
                  and (member_index is not None or not with_aleatoric))
         norm = self.input_normalizer
         if fused:

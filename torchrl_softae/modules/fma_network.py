@@ -16,11 +16,9 @@ import torch
 
 from torchrl_softae.modules._fused_network import PackedLayer, PackedNetworkBase, prepare, run
 from torchrl_softae.modules._instruction_sets import instruction_set_functions
+from torchrl_softae.modules.kernels import load_extension
 
-try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
-    from torchrl_softae.modules import _fma_network
-except ImportError:
-    _fma_network = None
+_fma_network = load_extension("_fma_network")  # after torch (None: not built, or SOFTAE_KERNELS=0)
 
 __all__ = ["RUNS", "available", "why_not", "isa", "supported_isas", "use_isa", "cache_tag", "pack_layer", "pack_network",
            "forward", "prepare_forward", "PackedLayer", "PackedNetwork", "DTYPES"]

@@ -15,11 +15,9 @@ import torch
 
 from torchrl_softae.modules._instruction_sets import instruction_set_functions
 from torchrl_softae.modules._profiling import seen_by_profiler
+from torchrl_softae.modules.kernels import load_extension
 
-try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
-    from torchrl_softae.modules import _moments
-except ImportError:
-    _moments = None
+_moments = load_extension("_moments")  # after torch (None: not built, or SOFTAE_KERNELS=0)
 if _moments is not None and not _moments.supported():  # built, but this CPU lacks AVX2
     _moments = None
 

@@ -23,11 +23,9 @@ import torch
 
 from torchrl_softae.modules._instruction_sets import instruction_set_functions
 from torchrl_softae.modules._profiling import seen_by_profiler
+from torchrl_softae.modules.kernels import load_extension
 
-try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
-    from torchrl_softae.modules import _normal
-except ImportError:
-    _normal = None
+_normal = load_extension("_normal")  # after torch (None: not built, or SOFTAE_KERNELS=0)
 if _normal is not None and _normal.supported_isas()[-1] == "portable":
     # without AVX2 the portable C (a libm call per fused multiply-add) is 3x slower than
     # torch.randn: draw with torch there
@@ -36,8 +34,8 @@ if _normal is not None and _normal.supported_isas()[-1] == "portable":
 __all__ = ["available", "applies", "randn", "normal_", "add_scaled_randn", "isa", "supported_isas", "use_isa", "enabled"]
 
 #: ``False``: every draw by ``torch.randn`` (its stream), to compare or to reproduce a run made
-#: before the kernel; read at every call. The environment variable ``SOFTAE_NORMAL_KERNEL=0`` sets
-#: it at import (for the ``softae`` commands and sweeps)
+#: before the kernel; read at every call. ``SOFTAE_NORMAL_KERNEL=0`` sets it at import (for the
+#: ``softae`` commands and sweeps); ``SOFTAE_KERNELS=0`` leaves the kernel unloaded altogether
 enabled: bool = os.environ.get("SOFTAE_NORMAL_KERNEL", "1") != "0"
 
 #: ``"avx512"``, ``"avx2"`` or ``"portable"`` (the same values on each), the ones this CPU runs, a switch
@@ -91,16 +89,19 @@ def normal_(out: torch.Tensor, generator: torch.Generator | None = None) -> torc
     return out
 
 
-def add_scaled_randn(x: torch.Tensor, std: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+def add_scaled_randn(x: torch.Tensor, std: torch.Tensor, generator: torch.Generator | None = None,
+                     kernel: bool = True) -> torch.Tensor:
     """``x + std * z``, ``z`` standard normal of ``x``'s shape, in one pass (a new tensor).
 
     Args:
         x: ``(*B, d)``; std: broadcastable to ``x``.
         generator: the seed's source.
+        kernel: ``False`` for torch's draws whatever :func:`applies` says (a model built with
+            ``kernels="torch"``).
 
     Where :func:`applies` does not hold for ``x``, ``x + std * torch.randn(...)``.
     """
-    if not applies(x, generator) or std.dtype != torch.float32 or std.device != x.device:
+    if not kernel or not applies(x, generator) or std.dtype != torch.float32 or std.device != x.device:
         return x + std * torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
     x = x.contiguous()
     std = std.expand_as(x).contiguous()

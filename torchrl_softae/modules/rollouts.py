@@ -60,6 +60,7 @@ def _rollout_network(model, rows: Sequence[int], cols: int | None, device) -> tu
     or an inference path that is not a whole-network kernel for one of the row counts."""
     d, d_a = model.observation_dim, model.action_dim
     if (torch.is_grad_enabled() or torch.device(device).type != "cpu" or not model.fused_moments
+            or not model.uses_kernels
             or model.symlog_observations or not moments_kernel.available()
             or model.ensemble_size > moments_kernel.MAX_MEMBERS):
         return None, None

@@ -12,11 +12,9 @@ from torch.nn import functional as F
 
 from torchrl_softae.modules._instruction_sets import instruction_set_functions
 from torchrl_softae.modules._profiling import seen_by_profiler
+from torchrl_softae.modules.kernels import load_extension
 
-try:  # after torch: the extension's libgomp.so.1 resolves to torch's, one OpenMP thread pool
-    from torchrl_softae.modules import _silu
-except ImportError:
-    _silu = None
+_silu = load_extension("_silu")  # after torch (None: not built, or SOFTAE_KERNELS=0)
 
 __all__ = ["available", "isa", "supported_isas", "use_isa", "cache_tag", "silu_", "bias_silu_"]
 

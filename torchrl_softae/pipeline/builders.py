@@ -29,6 +29,7 @@ def build_world_model(cfg: ModelConfig, observation_dim: int, action_dim: int, d
     return EnsembleWorldModel(
         observation_dim, action_dim, ensemble_size=cfg.ensemble_size, num_cells=cfg.num_cells,
         depth=cfg.depth, probabilistic=cfg.probabilistic, symlog_observations=cfg.symlog, device=device,
+        kernels=cfg.kernels,
     )
 
 

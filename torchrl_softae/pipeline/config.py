@@ -20,6 +20,7 @@ __all__ = [
     "flat_config",
 ]
 
+from torchrl_softae.modules.kernels import KERNEL_CHOICES
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS
 from torchrl_softae.objectives.training import TRAINING_PRECISIONS
 from torchrl_softae.envs.transforms.hallucinated_control import DEFAULT_BETA
@@ -39,6 +40,7 @@ class ModelConfig:
     depth: int = 4
     probabilistic: bool = True
     symlog: bool = False  # model the state in symlog space (on in the MBPO presets)
+    kernels: str = "auto"  # "torch": never our compiled kernels (EnsembleWorldModel(kernels=...))
 
 
 @dataclass
@@ -199,6 +201,8 @@ class ExploreConfig:
         if method.trains_policy and task is not None and task.instantiate is not None:
             raise ConfigError(f"task {self.task!r} is a family of targets: a SAC policy needs one fixed task "
                               f"(choose one of {', '.join(t for t in tasks if entry.tasks[t].instantiate is None)})")
+        if self.model.kernels not in KERNEL_CHOICES:
+            raise ConfigError(f"model.kernels={self.model.kernels!r}; valid: {', '.join(KERNEL_CHOICES)}")
         if self.train.precision not in TRAINING_PRECISIONS:
             raise ConfigError(f"train.precision={self.train.precision!r}; valid: {', '.join(TRAINING_PRECISIONS)}")
         if not 0 <= self.train.val_fraction < 1:
