@@ -84,6 +84,12 @@ def test_module_callable_torchrl_env_resumes_and_plots(tmp_path, capsys):
     assert history[-1]["transitions"] == 30
     assert main(["plot", "--run-dir", str(run)]) == 0
     assert (run / "plots" / "coverage.png").exists() and (run / "plots" / "learning_curves.png").exists()
+    assert main(["evaluate", "--run-dir", str(run), "--task", "outside_envs:reach_origin", *EVAL]) == 0
+    assert json.loads((run / "eval" / "reach-origin@horizon=2,num_candidates=8,top_k=2.json").read_text())["returns"]
+    assert main(["report", str(tmp_path / "runs")]) == 0
+    md = (tmp_path / "runs" / "report.md").read_text()
+    assert "## outside_envs:make_torchrl_point: 3 episodes" in md and "reach-origin@horizon=2,num_candidates=8,top_k=2 return" in md
+    assert (tmp_path / "runs" / "plots" / "mse_bars.png").exists()
 
 
 @pytest.mark.parametrize("args, needle", [
