@@ -90,7 +90,7 @@ def _rows(env: str, tag: str = "") -> list[dict]:
 
 def _fmt(values, fmt="{:.1f}") -> str:
     v = np.asarray(values, dtype=float)
-    return (fmt.format(v.mean()) + (" +- " + fmt.format(v.std()) if len(v) > 1 else "")) if len(v) else "-"
+    return (fmt.format(v.mean()) + (" +- " + fmt.format(v.std(ddof=1)) if len(v) > 1 else "")) if len(v) else "-"
 
 
 def table(env: str, tag: str = "") -> str:
@@ -143,7 +143,7 @@ def plot(env: str, tag: str = "") -> Path | None:
             budgets = sorted({r["transitions"] for r in rows if r["method"] == m})
             vals = [[r["tasks"][task]["mean_return"] for r in rows if r["method"] == m and r["transitions"] == b]
                     for b in budgets]
-            mean, std = np.array([np.mean(v) for v in vals]), np.array([np.std(v) for v in vals])
+            mean, std = np.array([np.mean(v) for v in vals]), np.array([np.std(v, ddof=1) if len(v) > 1 else 0.0 for v in vals])
             n = sorted({len(v) for v in vals})
             x = np.array(budgets, dtype=float) + (c - (len(methods) - 1) / 2) * width
             ax.errorbar(x, mean, yerr=std, marker="o", capsize=3, color=method_color(m),

@@ -115,7 +115,7 @@ def run_one(method: str, seed: int, args, targets, paths, extra) -> dict:
 
 def _pm(values, digits=1) -> str:
     v = np.asarray(values, dtype=float)
-    return f"{v.mean():.{digits}f}" + (f" +- {v.std():.{digits}f}" if len(v) > 1 else "")
+    return f"{v.mean():.{digits}f}" + (f" +- {v.std(ddof=1):.{digits}f}" if len(v) > 1 else "")
 
 
 def main():

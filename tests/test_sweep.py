@@ -323,7 +323,7 @@ def test_report_shows_the_heldout_error_by_group_where_runs_logged_groups(tmp_pa
                                 "coverage"]
     (row,) = table["rows"]
     assert row["heldout_nmse/tip"] == [0.1, 0.3] and row["heldout_nmse/velocities"] == [5.0, 7.0]
-    assert "| random | 2 | 3 ± 1 | 0.2 ± 0.1 | 6 ± 1 | 0.1 ± 0 |" in text
+    assert "| random | 2 | 3 ± 1.4 | 0.2 ± 0.14 | 6 ± 1.4 | 0.1 ± 0 |" in text  # sample std (ddof = 1)
 
 
 def test_a_sweep_drops_the_settings_a_method_ignores(tmp_path):

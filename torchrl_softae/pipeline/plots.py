@@ -181,12 +181,12 @@ def plot_run(run_dir: str | Path) -> list[Path]:
         fig, axes = plt.subplots(1, ncols, figsize=(4.5 * ncols, 3.6), squeeze=False)
         names = list(evals)
         res = [evals[t]["returns"] for t in names]
-        axes[0][0].bar(names, [np.mean(r) for r in res], yerr=[np.std(r) for r in res], capsize=4, color="C2")
-        axes[0][0].set_ylabel(f"zero-shot return (mean +- std over {len(res[0])} episodes)")
+        axes[0][0].bar(names, [np.mean(r) for r in res], yerr=[_sample_std(r) for r in res], capsize=4, color="C2")
+        axes[0][0].set_ylabel(f"zero-shot return (mean +- sample std over {len(res[0])} episodes)")
         axes[0][0].tick_params(axis="x", rotation=20)
         if with_metric:
             vals = [[m[metrics[t]] for m in evals[t]["metrics"]] for t in with_metric]
-            axes[0][1].bar(with_metric, [np.mean(v) for v in vals], yerr=[np.std(v) for v in vals], capsize=4, color="C4")
+            axes[0][1].bar(with_metric, [np.mean(v) for v in vals], yerr=[_sample_std(v) for v in vals], capsize=4, color="C4")
             axes[0][1].set_ylabel(" / ".join(sorted({metric_label(metrics[t]) for t in with_metric})))
             axes[0][1].set_title("success measure", fontsize=10)
         fig.suptitle(f"{name}: zero-shot evaluation after {budget}", fontsize=10)
@@ -214,6 +214,11 @@ def method_color(label: str) -> str:
     table, so a method keeps its colour whichever others stand beside it."""
     name = label.split(" ")[0]
     return f"C{METHOD_NAMES.index(name)}" if name in METHOD_NAMES else "C7"
+
+
+def _sample_std(values) -> float:
+    """The sample std (ddof = 1) of ``values``; 0 for a single value."""
+    return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
 
 
 def _seed_bars(ax, labels: list[str], values: list[list[float]], color) -> None:

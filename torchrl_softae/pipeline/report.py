@@ -1,7 +1,7 @@
 """``softae report ROOT``: any folder of runs (a sweep, or runs made by hand) as the paper's tables.
 
 Per env and budget (episodes x transitions; runs of different budgets are never averaged
-together): one row per method with mean +- std over seeds of the held-out normalized MSE (and
+together): one row per method with mean +- sample std over seeds of the held-out normalized MSE (and
 by group of state dimensions where the env defines groups), the coverage and each evaluated
 task's zero-shot return (and its success measure where the task has one), the real returns of the SAC task policies trained on the run's final model (``softae
 policy``, ``RUN/policies/``), plus the model-free reference rows where a run dir holds
@@ -36,7 +36,7 @@ def _fmt(values, digits: int = 4) -> str:
     if not len(v):
         return "-"
     m = f"{v.mean():.{digits}g}"
-    return m + (f" ± {v.std():.2g}" if len(v) > 1 else "")
+    return m + (f" ± {v.std(ddof=1):.2g}" if len(v) > 1 else "")  # the sample std over the seeds
 
 
 def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple = ()) -> tuple[str, Path, Path, list]:
