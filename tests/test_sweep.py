@@ -398,3 +398,51 @@ def test_report_merges_the_runs_archived_in_an_earlier_report(tmp_path, capsys):
     assert main(["report", str(new), "--merge", str(tmp_path / "nope.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nope.json is not a file (expected a report.json" in err[0], err
+
+
+REPLICATION = TINY.replace("evaluate: {tasks: [swingup], episodes: 1, planner: {horizon: 2}, references: true}",
+             "evaluate: {tasks: [swingup, spin], episodes: 1, planner: {horizon: 2}}\n"
+             "replication: {budgets: [1, 3], results: RESULTS, task_episodes: {spin: 2}}")
+
+
+def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(tmp_path, capsys):
+    """The sweep's replication block: each run is evaluated at each budget, one self-contained
+    record per (run, budget); a rerun does no work; ``softae report RESULTS`` tables each budget."""
+    results = tmp_path / "results" / "Pendulum-v1"
+    f = _write(tmp_path, REPLICATION.replace("RESULTS", str(results)))
+    root = tmp_path / "runs"
+    assert main(["sweep", str(f), "--root", str(root), "--jobs", "2"]) == 0
+    names = sorted(p.name for p in results.glob("*.json"))
+    assert names == [f"{run}-ep{b}.json" for run in ("random-s0", "random-s1", "softae-b2-s0", "softae-b2-s1")
+                     for b in (1, 3)]
+    rec = json.loads((results / "softae-b2-s1-ep1.json").read_text())
+    assert rec["budget"] == 1 and rec["transitions"] == 20 and len(rec["history"]) == 1
+    assert rec["config"]["episodes"] == 1 and rec["config"]["method"] == "softae"
+    assert set(rec["code"]) == {"commit", "dirty"} and rec["machine"]["cpu"] and "torch" in rec["machine"]
+    assert rec["accuracy"]["heldout_nmse"] == rec["history"][-1]["heldout_nmse"]
+    assert "heldout_nmse_identity" in rec["accuracy"] and rec["coverage"] == rec["history"][-1]["coverage"]
+    assert len(rec["tasks"]["swingup"]["returns"]) == 1 and len(rec["tasks"]["spin"]["returns"]) == 2
+    assert rec["tasks"]["swingup"]["planner_horizon"] == 2
+    assert rec["tasks"]["swingup"]["success_metric"] == "upright_fraction_last_half"
+    # the budget-3 record continues the budget-1 run: same first episode
+    late = json.loads((results / "softae-b2-s1-ep3.json").read_text())
+    assert late["history"][0] == rec["history"][0] and len(late["history"]) == 3
+    capsys.readouterr()
+    assert main(["sweep", str(f), "--root", str(root)]) == 0
+    assert "4 finished, 0 to run" in capsys.readouterr().out
+    assert main(["report", str(results.parent)]) == 0
+    md = (results.parent / "report.md").read_text()
+    assert "## Pendulum-v1: 1 episodes = 20 transitions per run" in md
+    assert "## Pendulum-v1: 3 episodes = 60 transitions per run" in md
+    assert "| softae | 2 |" in md and "swingup@horizon=2 return" not in md and "swingup return" in md
+    assert (results.parent / "plots" / "Pendulum-v1_60tr_mse_bars.png").exists()  # one figure per budget
+
+
+def test_a_replication_block_is_checked_before_any_run(tmp_path, capsys):
+    f = _write(tmp_path, REPLICATION.replace("RESULTS", str(tmp_path / "r")).replace("budgets: [1, 3]",
+                                                                                     "budgets: [1, 2]"))
+    assert main(["sweep", str(f), "--root", str(tmp_path / "runs")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("softae: error: "), err
+    assert "replication block: the budgets end at 2 episodes but the runs explore 3: set --episodes 2" in err[0]
+    assert not (tmp_path / "runs").exists()

@@ -8,7 +8,10 @@ from pathlib import Path
 
 from torchrl_softae.pipeline.runs import POLICIES_DIR, CheckpointError, RunDir, run_dirs_below
 
-__all__ = ["collect", "read_archive", "archived_runs", "is_finished"]
+__all__ = ["collect", "read_archive", "archived_runs", "is_finished", "replication_records"]
+
+#: the ``kind`` of a replication record (written by :mod:`torchrl_softae.pipeline.replication`)
+REPLICATION_KIND = "softae-replication-record"
 
 
 def _progress(history: list[dict]) -> dict:
@@ -74,3 +77,22 @@ def is_finished(run: dict) -> bool:
     """Whether a run record (of :func:`collect`, or archived in ``report.json``) reached its
     configured number of episodes: only finished runs are averaged and plotted."""
     return bool(run["episodes_done"]) and run["episodes_done"] >= (run["episodes_target"] or 0)
+
+
+def replication_records(root: str | Path) -> list[dict]:
+    """Run records from the replication records below ``root`` (one JSON per run and budget,
+    :mod:`~torchrl_softae.pipeline.replication`): each is a finished run of ``budget`` episodes
+    whose run dir is the record (``record`` names it)."""
+    out = []
+    for path in sorted(Path(root).rglob("*.json")):
+        try:
+            rec = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError, OSError):
+            continue
+        if not isinstance(rec, dict) or rec.get("kind") != REPLICATION_KIND:
+            continue
+        out.append({"run_dir": str(path.with_suffix("")), "config": rec["config"], "env": rec["env"],
+                    "method": rec["method"], "seed": rec["seed"], "episodes_target": rec["budget"],
+                    "episodes_done": rec["budget"], "history": rec["history"], "evals": rec["tasks"],
+                    "policies": {}, "record": str(path), **_progress(rec["history"])})
+    return out

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from torchrl_softae.pipeline.labels import label_order, row_labels
-from torchrl_softae.pipeline.records import archived_runs, collect, is_finished, read_archive  # noqa: F401 (public)
+from torchrl_softae.pipeline.records import (archived_runs, collect, is_finished, read_archive,  # noqa: F401 (public)
+                                              replication_records)
 from torchrl_softae.pipeline.runs import atomic_write_text
 from torchrl_softae.tasks.base import metric_label
 
@@ -49,6 +50,7 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
     warn = warn or (lambda m: print(m, file=sys.stderr))
     root = Path(root)
     runs = collect(root, warn) if root.exists() or not merge else []
+    runs += replication_records(root) if root.exists() else []
     seen = {Path(r["run_dir"]).resolve() for r in runs}
     for path in merge:
         for r in archived_runs(path, root):
@@ -57,7 +59,7 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
                 seen.add(where)
                 runs.append(r)
     if not runs:
-        raise FileNotFoundError(f"no run (config.json) below {root}")
+        raise FileNotFoundError(f"no run (config.json) or replication record below {root}")
     finished = [r for r in runs if is_finished(r)]
     unfinished = [r for r in runs if r not in finished]
     budgets = defaultdict(list)
@@ -164,13 +166,13 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
                                                                              for r in unfinished],
                                              "runs": archive}, indent=1, default=float))
     written = []
-    if plots and finished and any(r.get("archived") for r in finished):
+    if plots and finished and any(r.get("archived") or r.get("record") for r in finished):
         from torchrl_softae.pipeline.plots import plot_report
 
         # archived runs keep their histories and evaluations, not their collected states
         written = plot_report(json_path, warn)
-        warn(f"softae report: {sum(map(len, archived.values()))} runs come from earlier reports without "
-             "their collected states: the coverage heatmaps are not redrawn")
+        warn(f"softae report: {sum(1 for r in finished if r.get('archived') or r.get('record'))} runs come from "
+             "earlier reports or replication records, without their collected states: no coverage heatmaps")
     elif plots and finished:
         from torchrl_softae.pipeline.plots import plot_comparison
 

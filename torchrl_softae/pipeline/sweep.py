@@ -40,6 +40,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_softae.pipeline import replication
 from torchrl_softae.pipeline.config import ConfigError
 from torchrl_softae.pipeline.methods import get_method
 
@@ -64,17 +65,19 @@ class Trial:
     # where the driver stood: a module:attr env or task is imported from there in every worker
     # (Tune runs a trial in its own directory)
     search_path: list[str] = field(default_factory=list)
+    replication: dict | None = None  # the sweep file's ``replication`` block (pipeline.replication)
 
     def to_json(self) -> dict:
         """What a trial process (local or Ray) needs to run it."""
         return {"name": self.name, "argv": self.argv, "run_dir": str(self.run_dir), "episodes": self.episodes,
                 "evaluate": self.evaluate, "policy": self.policy, "seed": self.seed, "method": self.method,
-                "search_path": self.search_path}
+                "search_path": self.search_path, "replication": self.replication}
 
     @classmethod
     def from_json(cls, d: dict) -> "Trial":
         return cls(d["name"], d["argv"], Path(d["run_dir"]), d["episodes"], d["evaluate"], policy=d.get("policy"),
-                   seed=d.get("seed", 0), method=d.get("method", "softae"), search_path=d.get("search_path", []))
+                   seed=d.get("seed", 0), method=d.get("method", "softae"), search_path=d.get("search_path", []),
+                   replication=d.get("replication"))
 
     def policy_propagation(self) -> str:
         """The propagation of its task policies: the block's, else the method's own for methods that
@@ -159,9 +162,10 @@ def expand(spec: dict, root: str | Path) -> tuple[list[Trial], int]:
         name = f"{run_dir.parent.name}/{run_dir.name}"
         if cfg.heldout_file:  # absolute: a Ray trial runs in its own directory
             argv.append(f"--heldout={cfg.heldout_file}")
-        trials.append(Trial(name, argv[1:] + [f"--run-dir={run_dir}"], run_dir, cfg.episodes,
-                            _evaluate_block(spec, cfg), dict(run), policy=_policy_block(spec, cfg), seed=cfg.seed,
-                            method=cfg.method, search_path=[os.getcwd()]))
+        evaluate = _evaluate_block(spec, cfg)
+        trials.append(Trial(name, argv[1:] + [f"--run-dir={run_dir}"], run_dir, cfg.episodes, evaluate, dict(run),
+                            policy=_policy_block(spec, cfg), seed=cfg.seed, method=cfg.method,
+                            search_path=[os.getcwd()], replication=replication.check_block(spec, cfg, evaluate)))
     return trials, total - len(trials)
 
 
@@ -234,6 +238,12 @@ def trial_status(trial: Trial) -> str:
 
     history = RunDir(trial.run_dir).history()
     done = len(history)
+    if trial.replication:  # finished when every budget has its record
+        missing = replication.missing_budgets(trial.replication, trial.run_dir)
+        if not missing and _policies_trained(trial):
+            return "finished"
+        return f"partial {done}/{trial.episodes}, {len(trial.replication['budgets']) - len(missing)} of " \
+               f"{len(trial.replication['budgets'])} budgets recorded" if done else "new"
     if done >= trial.episodes and _evaluated(trial) and _policies_trained(trial):
         return "finished"
     return f"partial {done}/{trial.episodes}" if done else "new"
@@ -287,9 +297,11 @@ def _run_trial(trial: Trial, cfg, on_episode) -> dict:
     from torchrl_softae.pipeline.evaluate import evaluate_run
     from torchrl_softae.pipeline.explore import explore
 
+    if trial.replication:
+        replication.run_budgets(trial, cfg, on_episode)
     history = explore(cfg, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
     row = dict(history[-1])
-    if trial.evaluate and not _evaluated(trial):
+    if trial.evaluate and not trial.replication and not _evaluated(trial):
         ev = trial.evaluate
         res = evaluate_run(trial.run_dir, tasks=ev.get("tasks"), episodes=int(ev.get("episodes", 3)),
                            propagation=ev.get("propagation", "mean"), progress=False,

@@ -1,0 +1,149 @@
+"""Replications: one exploration evaluated at several budgets, as a sweep file's ``replication``
+block says; one JSON record per (env, method, seed, budget) that holds everything a reader needs
+later without the run dir: the run's full config, the commit and machine that ran it, held-out
+accuracy overall and by group (with the s' = s and predict-the-mean baselines), coverage, the
+per-episode history, and per task the returns, success metrics and the planner horizon used.
+
+Sweep file::
+
+    replication:
+      budgets: [10, 25, 50]                         # exploration episodes at which to evaluate
+      results: benchmarks/results/replication/SoftArm-v1   # where the records go
+      task_episodes: {reach-any: 3}                 # evaluation episodes where not the evaluate block's
+    evaluate: {tasks: [reach-close, reach-far, reach-any], episodes: 1, planner: {horizon: 10}}
+
+``softae report RESULTS`` tabulates the records (one table per budget, mean +- sample std over
+seeds, n) and draws them.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import time
+from pathlib import Path
+
+from torchrl_softae.pipeline.config import ConfigError
+from torchrl_softae.pipeline.records import REPLICATION_KIND
+
+__all__ = ["REPLICATION_KIND", "REPLICATION_KEYS", "check_block", "record_path", "missing_budgets", "run_budgets",
+           "code_version", "machine"]
+
+REPLICATION_KEYS = ("budgets", "results", "task_episodes")
+
+
+def check_block(spec: dict, cfg, evaluate: dict | None) -> dict | None:
+    """The sweep's ``replication`` block, checked before anything runs; ``results`` made absolute
+    (a Ray trial runs in a folder of its own)."""
+    block = spec.get("replication")
+    if block is None:
+        return None
+    if not isinstance(block, dict) or sorted(set(block) - set(REPLICATION_KEYS)):
+        raise ConfigError(f"the sweep's replication block: expected a mapping of {', '.join(REPLICATION_KEYS)}, "
+                          f"got {block!r}")
+    budgets = block.get("budgets")
+    if (not isinstance(budgets, list) or not budgets or not all(isinstance(b, int) and b > 0 for b in budgets)
+            or budgets != sorted(set(budgets))):
+        raise ConfigError(f"replication block: budgets {budgets!r}: expected increasing positive episode counts")
+    if budgets[-1] != cfg.episodes:
+        raise ConfigError(f"replication block: the budgets end at {budgets[-1]} episodes but the runs explore "
+                          f"{cfg.episodes}: set --episodes {budgets[-1]} in the command")
+    if not isinstance(block.get("results"), str):
+        raise ConfigError("replication block: results: expected the folder the records go to")
+    if not evaluate or not evaluate.get("task_names"):
+        raise ConfigError("replication block: needs an evaluate block naming the tasks to evaluate at each budget")
+    episodes = block.get("task_episodes") or {}
+    if not isinstance(episodes, dict) or not all(isinstance(n, int) and n > 0 for n in episodes.values()):
+        raise ConfigError(f"replication block: task_episodes {episodes!r}: expected task -> positive episode count")
+    unknown = sorted(set(episodes) - set(evaluate["task_names"]))
+    if unknown:
+        raise ConfigError(f"replication block: task_episodes names {', '.join(unknown)}, not among the evaluated "
+                          f"tasks ({', '.join(evaluate['task_names'])})")
+    return {"budgets": budgets, "results": str(Path(block["results"]).resolve()), "task_episodes": episodes}
+
+
+def record_path(block: dict, run_dir: Path, budget: int) -> Path:
+    """``RESULTS/RUN-epBUDGET.json``, ``RUN`` the run dir's name (method, beta where used, seed)."""
+    return Path(block["results"]) / f"{Path(run_dir).name}-ep{budget}.json"
+
+
+def missing_budgets(block: dict, run_dir: Path) -> list[int]:
+    return [b for b in block["budgets"] if not record_path(block, run_dir, b).exists()]
+
+
+def code_version() -> dict:
+    """The commit of the package's source tree and whether it had uncommitted changes (``None``
+    outside a git checkout): a record says which code computed it."""
+    where = Path(__file__).resolve().parent
+
+    def git(*args):
+        try:
+            return subprocess.run(["git", *args], cwd=where, capture_output=True, text=True, timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    commit = git("rev-parse", "HEAD") or None
+    return {"commit": commit, "dirty": None if commit is None else bool(git("status", "--porcelain",
+                                                                         "--untracked-files=no"))}
+
+
+def machine() -> dict:
+    """The CPU (name and the instruction sets that change the arithmetic or its speed), torch and
+    its threads, and which compiled kernels this process loaded."""
+    import torch
+
+    from torchrl_softae.modules import amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel
+    from torchrl_softae.modules.precision import cpu_info, cpu_name, flags_of
+
+    info = cpu_info()
+    flags = flags_of(info)
+    return {"cpu": cpu_name(info), "isa": [f for f in ("avx2", "avx512f", "avx512_bf16", "amx_bf16") if f in flags],
+            "torch": torch.__version__, "threads": torch.get_num_threads(),
+            "kernels": {m.__name__.rsplit(".", 1)[1]: m.available() for m in
+                        (amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel)}}
+
+
+def run_budgets(trial, cfg, on_episode=None) -> list[Path]:
+    """Explore ``trial``'s run to each budget that has no record yet, evaluate it there and write
+    its record; returns the records written. A budget the run already went past cannot be
+    evaluated any more (its model is gone): one clear error."""
+    from torchrl_softae.pipeline.evaluate import evaluate_run
+    from torchrl_softae.pipeline.explore import explore
+    from torchrl_softae.pipeline.runs import RunDir, atomic_write_text
+
+    block, ev = trial.replication, trial.evaluate
+    written = []
+    for budget in missing_budgets(block, trial.run_dir):
+        done = len(RunDir(trial.run_dir).history())
+        if done > budget:
+            raise ConfigError(f"{trial.run_dir} explored {done} episodes, past the budget {budget} whose record "
+                              f"{record_path(block, trial.run_dir, budget)} is missing: that model is gone; "
+                              "explore a new run dir to evaluate it")
+        cfg_b = dataclasses.replace(cfg, episodes=budget)
+        history = explore(cfg_b, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
+        t0 = time.perf_counter()
+        by_episodes: dict[int, list[str]] = {}
+        for name in ev["task_names"]:
+            by_episodes.setdefault(block["task_episodes"].get(name, int(ev.get("episodes", 3))), []).append(name)
+        overrides = [f"planner.{k}={v}" for k, v in (ev.get("planner") or {}).items()] or None
+        tasks, accuracy = {}, {}
+        for episodes, names in by_episodes.items():
+            res = evaluate_run(trial.run_dir, tasks=names, episodes=episodes, propagation=ev.get("propagation", "mean"),
+                               progress=False, planner_overrides=overrides)
+            accuracy = {k: v for k, v in res.items() if k.startswith("heldout_")}
+            tasks.update({name: {**r, "planner_horizon": r["planner"]["horizon"]} for name, r in res["tasks"].items()})
+        record = {
+            "kind": REPLICATION_KIND, "env": cfg.env, "method": cfg.method, "seed": cfg.seed, "budget": budget,
+            "transitions": history[-1]["transitions"], "config": cfg_b.to_dict(), "code": code_version(),
+            "machine": machine(), "accuracy": accuracy, "coverage": history[-1]["coverage"], "tasks": tasks,
+            "seconds": {"explore": sum(r["collect_seconds"] + r["train_seconds"] for r in history),
+                        "evaluate": time.perf_counter() - t0},
+            "history": history,
+        }
+        path = record_path(block, trial.run_dir, budget)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, json.dumps(record, indent=1, default=float))
+        written.append(path)
+        if on_episode is not None:
+            on_episode({**history[-1], **{f"return/{k}": v["mean_return"] for k, v in tasks.items()}, "evaluated": 1})
+    return written
