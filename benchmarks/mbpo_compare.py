@@ -38,7 +38,7 @@ RESULTS = Path(__file__).parent / "results" / "mbpo"
 SETUPS = {  # env -> (task (i), task (ii), preset, overrides)
     "Pendulum-hanging": ("swingup", "spin", "quick", []),
     # the paper's MBPO setting (symlog model, Table S6-S8); SAC at the quick preset's sizes: Table S8's 3 x 1024 networks
-    # at 20 updates per transition cost about 12 h per task policy here (benchmarks/mbpo_cost.py)
+    # at 20 updates per transition cost about 12 h per task policy here (benchmarks/studies/mbpo_cost.py)
     "SoftArm-v1": ("reach-close", "reach-far", "mbpo",
                    ["planner.precision=auto", *[o for o in PRESETS["quick"] if o.startswith("policy.")]]),
 }

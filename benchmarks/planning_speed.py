@@ -14,7 +14,7 @@ of the same contender, as consecutive actions of an MPC loop do: a plan right af
 contender's fp32 network work ran 8-10 % slower whichever planner it was (two identical SoftAE
 one-particle bf16 planners, AMX Xeon: 23.1-24.5 ms right after an fp32 replay, 21.0-22.6 ms one
 place later; each after an untimed action of its own, 20.7-20.9 ms in either place: ``python
-benchmarks/order_effect.py``, ``benchmarks/results/order_effect-amx.txt``). So in a fixed order
+benchmarks/studies/order_effect.py``, ``benchmarks/results/order_effect-amx.txt``). So in a fixed order
 without it, SoftAE's plan, which followed the fp32 one-particle contender's replay, was measured
 slow; in a shuffled order without it every contender was, by as much as its predecessors were
 heavy.
@@ -134,7 +134,7 @@ ALLOCATORS = ("kept", "default")
 def allocator_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--allocator", choices=ALLOCATORS, default="kept",
                    help="kept (default, as the softae commands run): keep_freed_memory() for every contender; "
-                        "default: glibc's malloc as it comes (benchmarks/allocator_speed.py compares the two)")
+                        "default: glibc's malloc as it comes (benchmarks/studies/allocator_speed.py compares the two)")
 
 
 def use_allocator(choice: str) -> str:

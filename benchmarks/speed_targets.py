@@ -227,7 +227,7 @@ def main():
                   f"eval_batch_speed-{kind}[-bf16]-TAG.json in {RESULTS}\n")
     record = _load(f"planning_speed-{kind}.json") or _load(f"eval_batch_speed-{kind}.json")
     print(f"# speed targets on {kind} ({record['cpu']['cpu']}), from benchmarks/results/*-{kind}*.json")
-    # the allocator setting moves plan times (benchmarks/allocator_speed.py): say which each record ran with
+    # the allocator setting moves plan times (benchmarks/studies/allocator_speed.py): say which each record ran with
     names = [f"planning_speed-{kind}.json", f"eval_batch_speed-{kind}.json", f"eval_batch_speed-{kind}-bf16.json"]
     print("allocator: " + "; ".join(f"{n} {r.get('allocator', 'default (recorded before the option)')}"
                                      for n in names if (r := _load(n)) is not None) + "\n")

@@ -6,7 +6,8 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = sorted(p for p in (ROOT / "benchmarks").glob("*.py") if not p.name.startswith("_"))
+SCRIPTS = sorted(p for p in [*(ROOT / "benchmarks").glob("*.py"), *(ROOT / "benchmarks" / "studies").glob("*.py")]
+                 if not p.name.startswith("_"))
 
 
 def test_every_benchmark_imports_and_parses_its_arguments():
@@ -122,7 +123,7 @@ def test_heldout_extrapolation_splits_the_runs_own_metric(tmp_path):
 
     from torchrl_softae.pipeline.cli import main
 
-    sys.path.insert(0, str(ROOT / "benchmarks"))
+    sys.path.insert(0, str(ROOT / "benchmarks" / "studies"))
     import heldout_extrapolation
 
     run = tmp_path / "run"

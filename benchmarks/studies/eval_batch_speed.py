@@ -1,8 +1,8 @@
 """Zero-shot evaluation of E episodes as one batch (one planner call per step for all E states)
 vs one episode after another, same model, same planner settings, same seeded episodes.
 
-    python benchmarks/eval_batch_speed.py                      # Pendulum-hanging and SoftFish-v0, E = 8, fp32
-    python benchmarks/eval_batch_speed.py --precision bf16     # the planner's hidden layers in bf16
+    python benchmarks/studies/eval_batch_speed.py                      # Pendulum-hanging and SoftFish-v0, E = 8, fp32
+    python benchmarks/studies/eval_batch_speed.py --precision bf16     # the planner's hidden layers in bf16
 
 The model is a paper-sized ensemble (5 x 4 x 256) with normalizers fitted on random transitions
 (speed does not depend on training); the planner is the paper's iCEM (P=200, K=20, 5 iterations)
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))
 from planning_speed import (  # noqa: E402
     NetworkCallsAlone, RecordNetworkCalls, allocator_option, best_peaks, bf16_option, check_precision, cpu_description,
     cpu_kind, peaks, use_allocator)
@@ -77,7 +77,7 @@ def main():
     cpu = cpu_description()
     suffix = "" if args.precision == "fp32" else f"-{args.precision}"
     out = (Path(args.out) if args.out
-           else Path(__file__).parent / "results" / f"eval_batch_speed-{cpu_kind(cpu)}{suffix}.json")
+           else Path(__file__).parents[1] / "results" / f"eval_batch_speed-{cpu_kind(cpu)}{suffix}.json")
     print(f"# eval_batch_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; planner precision {args.precision}; allocator: {allocator}", flush=True)
     # the GEMM peak the ratios are held against: bf16's for --precision bf16, fp32's otherwise ("auto" too)

@@ -1,6 +1,6 @@
 """Why the arm's held-out error grows with data: the incremental training schedule, measured.
 
-    python benchmarks/arm_training_schedule.py benchmarks/results/runs/arm_v1/softae-s0 --threads 1
+    python benchmarks/studies/arm_training_schedule.py benchmarks/results/runs/arm_v1/softae-s0 --threads 1
 
 During exploration the ensemble is retrained after every episode from its previous weights
 (Table S6: lr 5e-5, 50 epochs capped at 5000 gradient steps), and its input/output normalizers
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-RESULTS = Path(__file__).parent / "results" / "arm_training_schedule"
+RESULTS = Path(__file__).parents[1] / "results" / "arm_training_schedule"
 
 
 def main():

@@ -1,8 +1,8 @@
 """Plans with glibc's default malloc against :func:`torchrl_softae.keep_freed_memory`, process
 against process.
 
-    python benchmarks/allocator_speed.py                  # 5 rounds, the arm's shape (58, 12), H=10
-    python benchmarks/allocator_speed.py --rounds 3 --threads 1
+    python benchmarks/studies/allocator_speed.py                  # 5 rounds, the arm's shape (58, 12), H=10
+    python benchmarks/studies/allocator_speed.py --rounds 3 --threads 1
 
 An allocator setting is process-wide, so the two cannot be interleaved inside one process: each
 round runs one child process per setting, in alternating order, and each child times its
@@ -30,7 +30,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))
 from planning_speed import ALLOCATORS, cpu_description, cpu_kind  # noqa: E402
 
 #: rows of one network call standing for 8 plans as one batch (8 x 2060: 10 particles)
@@ -99,7 +99,7 @@ def child(group: str, setting: str, plans: int, threads: int, d_s: int, d_a: int
 def run_child(group: str, setting: str, args) -> dict:
     cmd = [sys.executable, __file__, "--child", group, setting, "--plans", str(args.plans), "--threads", str(args.threads),
            "--shape", *map(str, args.shape)]
-    out = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).parent)
+    out = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).parents[1])
     if out.returncode != 0:
         raise RuntimeError(f"child ({group}, {setting}) failed:\n{out.stderr[-3000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -121,7 +121,7 @@ def main() -> int:
         print(json.dumps(child(*args.child, args.plans, args.threads, *args.shape)))
         return 0
     cpu = cpu_description()
-    out_path = Path(args.out) if args.out else Path(__file__).parent / "results" / f"allocator_speed-{cpu_kind(cpu)}.json"
+    out_path = Path(args.out) if args.out else Path(__file__).parents[1] / "results" / f"allocator_speed-{cpu_kind(cpu)}.json"
     print(f"# allocator_speed: {cpu['cpu']}; AVX-512 {cpu['avx512f']}, AVX512-BF16 {cpu['avx512_bf16']}, "
           f"AMX {cpu['amx_bf16']}; {args.threads} threads, shape {tuple(args.shape)}, {args.rounds} rounds of one "
           f"child per setting (alternating order), {args.plans} plans per contender per child", flush=True)

@@ -1,6 +1,6 @@
 """Which state dimensions drive the exploration reward ||sigma|| on the soft arm?
 
-    python benchmarks/arm_sigma_groups.py benchmarks/results/runs/arm_v1/softae-s0
+    python benchmarks/studies/arm_sigma_groups.py benchmarks/results/runs/arm_v1/softae-s0
 
 Loads a run's model and replay buffer, evaluates the epistemic std sigma(s, a) on its visited
 states with uniform random actions, and reports each state group's share of sum(sigma^2), in
@@ -43,7 +43,7 @@ def main():
     top = (sigma.square().mean(0) / sigma.square().mean(0).sum()).topk(5)
     out["top_dims_original"] = {int(i): float(v) for v, i in zip(*top)}
     print("top dims (original units):", {int(i): round(float(v), 3) for v, i in zip(*top)})
-    Path(__file__).parent.joinpath("results", "arm_sigma_groups.json").write_text(json.dumps(out, indent=1))
+    Path(__file__).parents[1].joinpath("results", "arm_sigma_groups.json").write_text(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Where a run's held-out error comes from: held-out transitions inside or outside its explored data.
 
-    python benchmarks/heldout_extrapolation.py benchmarks/results/runs/arm136_v1/pets-ae-s1 [RUN_DIR ...]
+    python benchmarks/studies/heldout_extrapolation.py benchmarks/results/runs/arm136_v1/pets-ae-s1 [RUN_DIR ...]
 
 For each run dir (any env; the groups are the env's accuracy groups), from its final model and
 replay buffer, the env's held-out set and the reference scale the pipeline uses (read from the
@@ -31,7 +31,7 @@ from torchrl_softae.pipeline.data import heldout_set, normalized_mse, reference_
 from torchrl_softae.pipeline.evaluate import load_run
 from torchrl_softae.pipeline.runs import RunDir
 
-RESULTS = Path(__file__).parent / "results" / "heldout_extrapolation"
+RESULTS = Path(__file__).parents[1] / "results" / "heldout_extrapolation"
 
 
 @torch.no_grad()

@@ -2,8 +2,8 @@
 after another, or one process with the seeds' planning stacked into one model call. Is the third
 worth building? This measures the bound.
 
-    python benchmarks/seed_batch_speed.py                    # S = 2 (one per core), SoftAE, fp32
-    python benchmarks/seed_batch_speed.py --precision bf16
+    python benchmarks/studies/seed_batch_speed.py                    # S = 2 (one per core), SoftAE, fp32
+    python benchmarks/studies/seed_batch_speed.py --precision bf16
 
 The work is what dominates an uncertainty method's exploration run: one MPC action per control step
 (SoftAE: the paper's iCEM, P=200, K=20, 5 iterations, one particle, the arm's (58, 12) and H=10),
@@ -39,7 +39,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))
 from planning_speed import (  # noqa: E402
     I, K, P, allocator_option, bf16_option, check_precision, cpu_description, cpu_kind, make_model, softae_env,
     use_allocator)
@@ -96,7 +96,7 @@ def main():
     cpu = cpu_description()
     suffix = "" if args.precision == "fp32" else f"-{args.precision}"
     out = (Path(args.out) if args.out
-           else Path(__file__).parent / "results" / f"seed_batch_speed-{cpu_kind(cpu)}{suffix}.json")
+           else Path(__file__).parents[1] / "results" / f"seed_batch_speed-{cpu_kind(cpu)}{suffix}.json")
     print(f"# seed_batch_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; AVX-512 {cpu['avx512f']}, "
           f"AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; {S} SoftAE seeds, (58, 12), H={H}, "
           f"{args.precision}; allocator: {allocator}", flush=True)

@@ -1,6 +1,6 @@
 """What a small op costs right after a network call, against the same op in a loop.
 
-    python benchmarks/cold_ops.py [--rounds 5] [--calls 300]
+    python benchmarks/studies/cold_ops.py [--rounds 5] [--calls 300]
 
 A one-particle plan's model step is one network call and a handful of small ops on (206, d_s)
 tensors before the next call. Timed in a loop, each small op costs a few microseconds; the plan
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))
 from planning_speed import cpu_description, cpu_kind, make_model  # noqa: E402
 
 from torchrl_softae.allocator import keep_freed_memory  # noqa: E402
@@ -95,7 +95,7 @@ def main() -> None:
     print("|---|" + "---|" * len(names))
     for op in ops:
         print(f"| {op} | " + " | ".join(f"{1e6 * statistics.median(times[(op, n)]):.1f}" for n in names) + " |")
-    out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"cold_ops-{cpu_kind(cpu)}.json"
+    out = Path(args.out) if args.out else Path(__file__).parents[1] / "results" / f"cold_ops-{cpu_kind(cpu)}.json"
     out.write_text(json.dumps({"cpu": cpu, "threads": torch.get_num_threads(), "rounds": args.rounds,
                                "calls": args.calls, "rows": rows_out}, indent=1))
     print(f"\nwrote {out}")

@@ -2,8 +2,8 @@
 counts planning makes, interleaved: how far each path is from the GEMM peak before a plan adds its
 own work (benchmarks/README.md, "The whole fp32 network in one call").
 
-    python benchmarks/network_paths_speed.py                 # fp32 and, where native, bf16
-    python benchmarks/network_paths_speed.py --rounds 30
+    python benchmarks/studies/network_paths_speed.py                 # fp32 and, where native, bf16
+    python benchmarks/studies/network_paths_speed.py --rounds 30
 
 The network is ``EnsembleWorldModel(58, 12)`` (5 x 4 x 256, SiLU) called as the planner calls it
 (``network_output`` with the path fixed): 206 rows (one-particle planning, the mean head) and 2060
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))
 from planning_speed import (  # noqa: E402
     KEPT, N, P, allocator_option, best_peaks, cpu_description, cpu_kind, flops_per_row, make_model, peaks,
     timed_precisions, use_allocator)
@@ -98,7 +98,7 @@ def main() -> int:
         rows_out.append(row)
         print(f"| {label} | {rows} | {name} | {path} | {row['best_us']:.0f} | {row['median_us']:.0f} "
               f"| {100 * row['fraction_of_peak']:.0f} % |")
-    out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"network_paths_speed-{cpu_kind(cpu)}.json"
+    out = Path(args.out) if args.out else Path(__file__).parents[1] / "results" / f"network_paths_speed-{cpu_kind(cpu)}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"cpu": cpu, "threads": args.threads, "allocator": allocator, "rounds": args.rounds,
                                "calls": args.calls,

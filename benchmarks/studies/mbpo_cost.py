@@ -1,8 +1,8 @@
 """What MBPO costs on this machine: one SAC update and one imagined-rollout round, and from them
 the compute of a run at the paper's settings (Table S8) and at the ``quick`` preset's.
 
-    python benchmarks/mbpo_cost.py                  # the soft arm's sizes (d_s = 58, d_a = 12)
-    python benchmarks/mbpo_cost.py --env-dims 3 1   # Pendulum's
+    python benchmarks/studies/mbpo_cost.py                  # the soft arm's sizes (d_s = 58, d_a = 12)
+    python benchmarks/studies/mbpo_cost.py --env-dims 3 1   # Pendulum's
 
 Sizes are interleaved (round-robin, ``--repeats`` rounds), each timed as the median and best of
 its rounds; the CPU's features are printed. A run's SAC compute is ``updates_per_step x
@@ -22,7 +22,7 @@ from tensordict import TensorDict
 from torchrl.data import Bounded
 from torchrl.envs import TransformedEnv
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))
 from planning_speed import cpu_description  # noqa: E402
 
 from torchrl_softae.envs import EnsembleModelEnv  # noqa: E402
@@ -90,7 +90,7 @@ def main():
               f"{1e3 * min(times[(n, 'update')]):.1f}), rollout round of {cfg.rollout_batch} x {cfg.rollout_horizon} "
               f"{1e3 * roll:.1f} ms; {cfg.updates_per_step} updates per real transition x {args.transitions} "
               f"transitions = {updates} updates = {out[n]['minutes_per_task_policy']:.0f} min per task policy")
-    path = Path(__file__).parent / "results" / f"mbpo_cost_{d_s}x{d_a}.json"
+    path = Path(__file__).parents[1] / "results" / f"mbpo_cost_{d_s}x{d_a}.json"
     path.write_text(json.dumps({"cpu": cpu_description(), "threads": args.threads, "d_s": d_s, "d_a": d_a,
                                 "transitions": args.transitions, **out}, indent=1))
 

@@ -1,7 +1,7 @@
 """Does a plan's time depend on which contender ran just before it? The question behind
 ``planning_speed.py``'s shuffled order (benchmarks/README.md, "The targets").
 
-    python benchmarks/order_effect.py [--rounds 15]
+    python benchmarks/studies/order_effect.py [--rounds 15]
 
 SoPrA's shape ((32, 6), H=5), three of ``planning_speed.py``'s contenders as it runs them: our fp32
 one-particle plan followed by its network calls replayed alone (``--network-alone``), then two
@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))
 from planning_speed import (  # noqa: E402
     NetworkCallsAlone, RecordNetworkCalls, cpu_description, icem_contender, icem_settings, make_model, pets_env,
     softae_env, use_allocator)

@@ -1,8 +1,8 @@
 """One network call in passes of rows against one pass, at the row counts planning makes: an idea
 tried and not used (benchmarks/README.md, "Tried and not used").
 
-    python benchmarks/tile_rows_speed.py                      # freed memory kept, as softae runs
-    python benchmarks/tile_rows_speed.py --allocator default  # glibc's malloc as it comes
+    python benchmarks/studies/tile_rows_speed.py                      # freed memory kept, as softae runs
+    python benchmarks/studies/tile_rows_speed.py --allocator default  # glibc's malloc as it comes
 
 The question: a hidden layer's output at N rows is N x 5 x 256 values, 84 MiB in fp32 at the 16480
 rows of 8 ten-particle plans as one batch; would running the network in passes of a few thousand
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))
 from planning_speed import (  # noqa: E402
     allocator_option, best_peaks, cpu_description, cpu_kind, flops_per_row, make_model, peaks, timed_precisions,
     use_allocator)
@@ -68,7 +68,7 @@ def main() -> int:
     allocator = use_allocator(args.allocator)
     cpu = cpu_description()
     suffix = "-default-allocator" if args.allocator == "default" else ""
-    out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"tile_rows_speed-{cpu_kind(cpu)}{suffix}.json"
+    out = Path(args.out) if args.out else Path(__file__).parents[1] / "results" / f"tile_rows_speed-{cpu_kind(cpu)}{suffix}.json"
     precisions = timed_precisions()
     print(f"# tile_rows_speed: torch {torch.__version__}, {args.threads} threads, {cpu['cpu']}; "
           f"AVX-512 {cpu['avx512f']}, AVX512-BF16 {cpu['avx512_bf16']}, AMX {cpu['amx_bf16']}; allocator: {allocator}",
