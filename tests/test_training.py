@@ -154,3 +154,34 @@ def test_float64_data_trains_a_float32_model_and_float64_inputs_get_one_clear_er
         trainer.model.predict(data["observation"], data["action"])
     with pytest.raises(TypeError, match="DoubleToFloat"):
         EnsembleLoss(trainer.model)(data[:8])
+
+
+def test_trainer_drops_non_finite_transitions_and_reads_replay_buffers():
+    from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+    m = EnsembleWorldModel(3, 2, num_cells=32, depth=2)
+    rb = ReplayBuffer(storage=LazyTensorStorage(100))
+    td = TensorDict(
+        {"observation": torch.randn(40, 3), "action": torch.randn(40, 2), ("next", "observation"): torch.randn(40, 3)}, [40]
+    )
+    td["next", "observation"][3] = float("nan")
+    rb.extend(td)
+    report = EnsembleTrainer(EnsembleLoss(m), epochs=2, lr=1e-3).fit(rb)
+    assert report.num_train + report.num_val == 39
+    assert report.grad_steps == 2 * 1  # 35 train rows, batch 64 -> one step per epoch
+    assert all(torch.isfinite(torch.tensor(report.train_loss)))
+
+
+def test_trainer_uses_fused_adam_on_cpu_with_the_same_updates():
+    torch.manual_seed(0)
+    obs = torch.randn(200, 3)
+    td = TensorDict({"observation": obs, "action": torch.randn(200, 2), ("next", "observation"): obs.sin()}, [200])
+    params = {}
+    for fused in (None, False):
+        torch.manual_seed(1)
+        trainer = EnsembleTrainer(EnsembleLoss(EnsembleWorldModel(3, 2, num_cells=32, depth=2)), lr=1e-3, epochs=3, fused=fused)
+        assert trainer.fused is (fused is None)
+        report = trainer.fit(td)
+        params[fused] = torch.cat([p.detach().flatten() for p in trainer.model.parameters()])
+        assert report.val_mse[-1] < report.val_mse[0]
+    torch.testing.assert_close(params[None], params[False], rtol=1e-4, atol=1e-5)
