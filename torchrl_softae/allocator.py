@@ -7,13 +7,9 @@ mmap threshold) is free. Either way the next allocation of that size touches fre
 kernel faults in and zeroes every 4 KiB of them. An ensemble's hidden layer at a 10-particle
 plan's 2060 rows is 10.5 MiB (fp32), at the rows of 8 such plans as one batch 84 MiB.
 
-Measured on this project's AMD EPYC VM (``benchmarks/allocator_speed.py``: the arm's shape, plans
-alone in a process, one process per setting, 5 alternating rounds): with glibc's defaults our
-fp32 10-particle plan took 164 k page faults and 1839 ms, with :func:`keep_freed_memory` none and
-1480 ms (1.22x); TorchRL's ``CEMPlanner`` 63 k faults, 1.04x; one network call at 8 plans' rows
-1.38x (fp32) and 1.41x (bf16). Whether a plan faults depends on what the process allocated
-before (glibc's thresholds move with it), so the gain on plans varies from run to run; above
-32 MiB every allocation faults.
+Whether a plan faults depends on what the process allocated before (glibc's thresholds move
+with it), so the gain varies from run to run; above 32 MiB every allocation faults. Measured:
+``benchmarks/studies/allocator_speed.py`` (numbers in ``benchmarks/README.md``).
 
 :func:`keep_freed_memory` tells glibc to serve every allocation from its heap and to keep freed
 memory for the next allocation, as PyTorch's CPU launcher (``torch.backends.xeon.run_cpu``) does

@@ -11,7 +11,7 @@
  * its layer's whole output, plus a SiLU pass per hidden layer. On the AMX Xeon the best of them ran
  * a 10-particle arm call (2060 rows per member) at 75-80 % of the fp32 GEMM peak and a one-particle
  * call (206 rows) at 61-64 %; this kernel, interleaved with them, at 84-90 % and 78-81 % (four
- * runs of benchmarks/network_paths_speed.py). Prefetching the next member's weights into L2 during
+ * runs of benchmarks/studies/network_paths_speed.py). Prefetching the next member's weights into L2 during
  * a thread's last units of a member was tried and gained nothing (the hardware prefetchers keep up).
  * A work unit is one member's block of up to ROWS rows carried through all layers: its activations
  * (ROWS x 256, 12 KiB in fp32) stay in L1, the member's weights (about 1 MiB in fp32) stream from

@@ -24,7 +24,7 @@
  * `share` = P, output row n reads row n / P of the network output and of the state, so the network
  * ran once for them. Right after a network call every torch op touches cache-cold code and
  * data (on the AMX Xeon a 4-element add took 6-26 us there against 2 us in a loop:
- * benchmarks/cold_ops.py); these are the three ops and the concatenation a step would otherwise run
+ * benchmarks/studies/cold_ops.py); these are the three ops and the concatenation a step would otherwise run
  * between two network calls.
  *
  * Why: done with torch ops this is about ten passes over (L, N, d_s) tensors (the bf16-to-fp32

@@ -21,8 +21,8 @@ def _leaves_box(x: torch.Tensor, low: torch.Tensor, high: torch.Tensor, tol: flo
     """Whether an entry of ``x`` ``(..., d)`` leaves ``[low, high]`` (``(d,)`` or scalars).
 
     Checked once per planner call on every candidate: one pass for the whole tensor against the
-    tightest bounds first (enough for the usual uniform box; 7-10x cheaper than comparing every
-    entry with its own bound, measured), per dimension only when that is inconclusive.
+    tightest bounds first (enough for the usual uniform box, and far cheaper than comparing every
+    entry with its own bound), per dimension only when that is inconclusive.
     """
     lo, hi = torch.aminmax(x)
     if bool(lo >= low.max() - tol) and bool(hi <= high.min() + tol):
@@ -436,7 +436,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         transform's reward for all steps in one call (its steps' arguments stacked, ``(H, *batch,
         ...)``; :meth:`~torchrl_softae.modules.planners.PlanningTransform.plan_reward`), summed over
         the horizon. One call instead of one per step between the network calls, where every op ran
-        cache-cold (``benchmarks/cold_ops.py``)."""
+        cache-cold (``benchmarks/studies/cold_ops.py``)."""
         trajectory, sigmas = rollout.run()
         H = sigmas.shape[0]
         trajectory = trajectory.view(H + 1, *batch, -1)

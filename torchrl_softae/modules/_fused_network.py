@@ -14,9 +14,8 @@ PackedLayer = tuple[torch.Tensor, torch.Tensor]
 
 class PackedNetworkBase:
     """Every layer of an ensemble network in a kernel's layout, checked once, with the kernel's
-    arguments prepared: a network call costs no Python per layer (at one-particle planning's 206
-    rows a bf16 network call is about 290 us, and checking and collecting five layers' addresses at
-    every call had cost 23 us of it).
+    arguments prepared: a network call costs no Python per layer (checking and collecting the
+    layers' addresses at every call is a visible part of a small network call).
 
     Subclasses name the kernel (``kernel``) and say how a packed layer reads:
     :meth:`_layer_error` (``None`` for the kernel's own layout), :meth:`_in_features` and

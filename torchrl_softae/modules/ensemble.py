@@ -111,8 +111,8 @@ def symexp(y: torch.Tensor) -> torch.Tensor:
 def ensemble_std(members: torch.Tensor, mean: torch.Tensor | None = None) -> torch.Tensor:
     """Unbiased std over the leading member dim of ``members`` (L, ...).
 
-    ``Tensor.std(0)`` over a (5, 2000, 58) tensor costs ~50x more than this explicit formula on
-    CPU (measured: 23 ms vs 0.4 ms), enough to double a plan's time.
+    The explicit formula, not ``Tensor.std(0)``: on the CPU that reduction over the member dim is
+    slow enough to double a plan's time.
     """
     if mean is None:
         mean = members.mean(0)
@@ -537,10 +537,9 @@ class EnsembleWorldModel(TensorDictModuleBase):
         The ``N`` rows are the pixels of a channels-last ``(1, C, N, 1)`` image whose channels are
         the ``L`` members' features side by side, so layer ``l`` of all members is ONE oneDNN
         convolution with ``groups=L`` (block-diagonal weights, no member loop) and activations stay
-        in one ``(N, L * h)`` buffer from layer to layer (no transposes). Why not ``baddbmm``: MKL,
-        torch's fp32 GEMM on x86, takes an AVX2 path on AMD CPUs; on the benchmark machine (AMD
-        EPYC, AVX-512) it runs at about 220 GFLOP/s against oneDNN's 450 (benchmarks/planning_speed.py
-        prints both); in bf16 both are near 900.
+        in one ``(N, L * h)`` buffer from layer to layer (no transposes). Why not only ``baddbmm``:
+        MKL, torch's fp32 GEMM on x86, takes an AVX2 path on AMD CPUs, where oneDNN's convolution
+        is the faster fp32 GEMM (``benchmarks/planning_speed.py`` prints both).
 
         ``fused``: the hidden activation runs inside the convolution (a oneDNN post-op,
         :meth:`_fused_activation`): the layer's output is written once, already activated; in bf16
@@ -585,18 +584,16 @@ class EnsembleWorldModel(TensorDictModuleBase):
     def _conv_weights(self, layer: EnsembleLinear, dtype: torch.dtype, cols: int | None, groups: int,
                       rows: int | None = None):
         """``layer`` as a grouped 1x1 convolution: weight ``(L * out, in, 1, 1)`` in channels-last
-        (oneDNN's fast path needs the weight in the input's memory format; a plain contiguous
-        weight was 7x slower) and bias ``(L * out,)``. The first layer's members share the input:
+        (oneDNN's fast path needs the weight in the input's memory format) and bias ``(L * out,)``. The first layer's members share the input:
         the same weight with ``groups=1``.
 
         ``rows``: also pack the weight into oneDNN's own blocked layout for inputs of that many rows,
-        once, instead of oneDNN reordering the plain weight at every call: measured on an AMX CPU,
-        the reorder was a quarter to a third of a bf16 layer at the 206 rows of one-particle
-        planning. The pack is for the exact row count (the first :data:`_EXACT_PACKS` counts a
-        model sees; a power-of-two bucket after them, so varying batch sizes cannot grow the cache
-        without bound): a weight packed for 256 rows made 206-row fp32 convolutions 1.6x slower on
-        one thread of the AMD EPYC (9.1 vs 5.6 ms per network call). Any row count is still
-        correct with any pack (the same results as the plain weight: ``test_packed_conv_weights_match``)."""
+        once, instead of oneDNN reordering the plain weight at every call (a large part of a bf16
+        layer at planning's row counts). The pack is for the exact row count (the first
+        :data:`_EXACT_PACKS` counts a model sees; a power-of-two bucket after them, so varying
+        batch sizes cannot grow the cache without bound): a weight packed for more rows slows a
+        convolution of fewer. Any row count is still correct with any pack (the same results as the
+        plain weight: ``test_packed_conv_weights_match``)."""
         bucket = None if rows is None else self._pack_rows(rows)
 
         def build(w, b):
@@ -623,8 +620,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
         """All layers packed for ``path``'s kernel in ``dtype`` (the last one's first ``cols``
         outputs), cached until a parameter changes (as :meth:`_cached`: its version counter moves;
         ``.to()`` and fused optimizer steps clear the cache). One check of the version counters of
-        the parameters the entry holds per call: reading ten parameters through the modules cost
-        7 us of a 290 us network call."""
+        the parameters the entry holds per call, not a walk through the modules (a visible part of a
+        small network call)."""
         key = ("whole network", path, dtype, cols)
         hit = self._inference_cache.get(key)
         if hit is not None and all(p._version == v for p, v in hit[0]):
@@ -652,15 +649,14 @@ class EnsembleWorldModel(TensorDictModuleBase):
         ``silu_kernel``: each hidden layer is a matmul without its bias and one pass of the
         compiled kernel that adds the bias and activates (:func:`~.silu_kernel.bias_silu_`);
         ``baddbmm`` would first copy the broadcast bias into its output, then read it back in the
-        GEMM: measured on an AMX CPU at 206 rows in bf16, 110 us per hidden layer against bmm's 83.
+        GEMM.
         """
         L = self.ensemble_size
-        # a list, not a slice of the ModuleList: slicing builds a new ModuleList at every call,
-        # a tenth of a small model's call (Pendulum's 5 x 2 x 64, 80 rows: 759 -> 673 us)
+        # a list, not a slice of the ModuleList: slicing builds a new ModuleList at every call
         *hidden, last = self.layers
         if x.dim() == 2:
-            # shared input: the first layer of all members is ONE (N, in) x (in, L*h) GEMM;
-            # a batched matmul with a small inner dimension was 3x slower (measured)
+            # shared input: the first layer of all members is ONE (N, in) x (in, L*h) GEMM
+            # (a batched matmul with a small inner dimension is much slower)
             n = x.shape[0]
             w, b = self._stacked_first_layer(dtype)
             if silu_kernel:  # (L, 1, h) -> one row of L * h: every row of the (N, L * h) output

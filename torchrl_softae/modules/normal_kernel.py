@@ -1,19 +1,17 @@
 """Counter-based standard normal draws for planning (``torchrl_softae/csrc/normal.c``).
 
 The aleatoric noise of PETS-style propagation and the colored noise of iCEM's candidates are drawn
-at every model step; torch's CPU generator (mt19937, one thread) takes about 2.5 ns per normal
-value, and in a bf16 10-particle arm plan on a CPU with AMX those draws were the largest op after
-the network. Here a value is a pure function of a 64-bit seed and its index (SplitMix64 of the
-counter, Box-Muller), computed on torch's threads, 2-5x faster than ``torch.randn`` on 2 cores;
+at every model step, and torch's CPU generator (mt19937) draws on one thread: in a bf16 plan
+those draws can be the largest op after the network. Here a value is a pure function of a 64-bit
+seed and its index (SplitMix64 of the counter, Box-Muller), computed on torch's threads;
 the seed is one value drawn from the caller's ``torch.Generator``, so a seeded generator gives a
 seeded stream, as with ``torch.randn`` (but not the same values). Every instruction-set variant
 and every thread count gives the same bits.
 
 Built at install time where a C compiler is present (an optional extension); where it is not
 built, on a CPU without AVX2 (where its portable C is slower than ``torch.randn``), or for tensors
-it does not take (not fp32 on the CPU), ``torch.randn`` draws instead. Speed for the 119480
-values of one 10-particle arm step, 2 threads of the AMX Xeon: 74 us (AVX-512), 163 (AVX2),
-1277 (portable), ``torch.randn`` 375.
+it does not take (not fp32 on the CPU), ``torch.randn`` draws instead. Speeds by instruction
+set: ``benchmarks/README.md``.
 """
 from __future__ import annotations
 
@@ -27,7 +25,7 @@ from torchrl_softae.modules.kernels import load_extension
 
 _normal = load_extension("_normal")  # after torch (None: not built, or SOFTAE_KERNELS=0)
 if _normal is not None and _normal.supported_isas()[-1] == "portable":
-    # without AVX2 the portable C (a libm call per fused multiply-add) is 3x slower than
+    # without AVX2 the portable C (a libm call per fused multiply-add) is slower than
     # torch.randn: draw with torch there
     _normal = None
 

@@ -60,7 +60,7 @@ def cpu_key(info: dict[str, str], silu_tag: str | None) -> str:
     """The CPU as the cache key names it, from its ``/proc/cpuinfo`` fields
     (:func:`~torchrl_softae.modules.precision.cpu_info`). The model name alone is not enough:
     virtual machines of two kinds both report "AMD EPYC", one with AVX-512 and one with AVX2 only,
-    and a choice measured on one can be 1.8x slower on the other. So the key also has the family,
+    and a choice measured on one can be much slower on the other. So the key also has the family,
     model and the instruction sets of :data:`_RANKING_FLAGS`, and which instruction set the
     compiled SiLU runs on and its revision (``silu_tag``, :func:`.silu_kernel.cache_tag`: a rebuilt
     kernel may rank differently). ARM CPUs list no model name

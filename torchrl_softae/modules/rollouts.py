@@ -258,9 +258,8 @@ class DeterministicRollout(_PlanningRollout):
     computes ``mu`` and ``sigma``. Where the inference path is a whole-network kernel
     (:mod:`.amx_network`, :mod:`.fma_network`) and the moments kernel applies
     (:mod:`.moments_kernel`), a step is two compiled calls, prepared once per shape: right after a
-    network call every torch op and line of Python runs on cache-cold code and data (on the AMX
-    Xeon a 4-element add took 6-26 us there against 2 us in a loop, ``benchmarks/cold_ops.py``),
-    and a step of a one-particle arm plan spent about 400 us between its network calls before.
+    network call every torch op and line of Python runs on cache-cold code and data, several times
+    slower than the same op in a loop (``benchmarks/studies/cold_ops.py``).
     Elsewhere each step runs :meth:`EnsembleWorldModel.network_output` and the torch ops of the
     moments, with the same values (``test_deterministic_rollout_matches_the_torch_ops``).
 

@@ -89,7 +89,7 @@ def branched_rollouts(env: EnvBase, policy, start_observations: torch.Tensor, ho
     # the rollout is a lazy stack of its steps (not return_contiguous=True: the first step, not
     # reset, lacks the done keys the others have); made dense once here, on the transition keys
     # every step has, because indexing, moving and storing a lazy (B * horizon,) stack goes row by
-    # row (masking and .cpu() of 100 x 5 rows: 57 ms lazy, 0.5 ms dense)
+    # row (far slower than on a dense tensordict)
     return traj.select(*TRANSITION_KEYS).contiguous().reshape(-1)
 
 

@@ -67,7 +67,7 @@ def _engine(precision: str, threads: int) -> str:
 
     dtype = resolve_planning_dtype(precision)
     line = f"planning in {'bf16' if dtype is not None else 'fp32'} (precision={precision}) on the CPU, {threads} torch threads"
-    if dtype is not None and not fast_bf16_available():  # torch emulates it: ~60x below fp32 (AVX2 EPYC)
+    if dtype is not None and not fast_bf16_available():  # torch emulates bf16 there: far below fp32
         line += ("; this CPU has no native bf16 (AMX-BF16, AVX512-BF16), so bf16 planning runs far slower "
                  "than fp32: --set planner.precision=auto picks fp32 here")
     return line

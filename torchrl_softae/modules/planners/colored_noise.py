@@ -9,8 +9,8 @@ inverse real FFT, normalized to unit variance.
 That is a fixed linear map of the ``2 n_f`` Gaussian coefficients (``n_f = T // 2 + 1``): for the
 planners' horizons (``T <= MAX_BASIS_T``) it is applied as two small matmuls with its matrix, the
 inverse FFT of each unit coefficient computed once per ``(beta, T)``, instead of a complex FFT per
-call: 2.8-3x faster for iCEM's samples at H = 5 and 10 (245 -> 87 us and 547 -> 180 us on the AMX
-Xeon), the same values to fp32 rounding (``test_colored_noise_basis_matches_the_fft``).
+call (faster at iCEM's sizes; ``benchmarks/README.md``), the same values to fp32 rounding
+(``test_colored_noise_basis_matches_the_fft``).
 """
 from __future__ import annotations
 

@@ -112,11 +112,11 @@ class SequencePlannerBase(MPCPlannerBase):
         ``std`` broadcast against ``noise``), clipped to the action box. Written into one buffer and
         clipped in place: the same values as adding, concatenating and clipping apart, with two
         passes and three allocations less (each costs a few tens of microseconds right after a
-        planner's scoring, ``benchmarks/cold_ops.py``)."""
+        planner's scoring, ``benchmarks/studies/cold_ops.py``)."""
         B, n = noise.shape[:2]
         out = torch.empty(B, n + sum(e.shape[1] for e in extra), *noise.shape[2:], dtype=noise.dtype,
                           device=noise.device)
-        # (not addcmul: on strided noise its loop may fuse the multiply-add, other bits than before)
+        # (not addcmul: on strided noise its loop may fuse the multiply-add, so other bits)
         torch.mul(std, noise, out=out[:, :n]).add_(mean)
         for e in extra:
             out[:, n:n + e.shape[1]] = e
