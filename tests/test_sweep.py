@@ -389,7 +389,7 @@ def test_report_merges_the_runs_archived_in_an_earlier_report(tmp_path, capsys):
     assert f"- {committed}: Pendulum-v1/random-s0" in captured.out
     # the bars come from the merged records; the heatmaps would need every run's collected states
     assert (new / "plots" / "mse_bars.png").exists() and (new / "plots" / "task_returns.png").exists()
-    assert "coverage heatmaps are not redrawn" in captured.err
+    assert "without their collected states: no coverage heatmaps" in captured.err
     # the merged report is itself an archive: merging it into an empty root gives the same table
     again = tmp_path / "again"
     assert main(["report", str(again), "--merge", str(new / "report.json"), "--no-plots"]) == 0
