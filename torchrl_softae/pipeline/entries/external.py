@@ -12,6 +12,7 @@ from torchrl_softae.references import BadReference
 from torchrl_softae.seeding import derive_seed
 
 __all__ = ["entry", "DEFAULT_EPISODE_LENGTH"]
+
 #: the exploration horizon of an env that declares no episode limit
 DEFAULT_EPISODE_LENGTH = 200
 
