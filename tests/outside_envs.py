@@ -120,3 +120,35 @@ def lying_spec_env():
             return seed
 
     return Lying()
+
+
+def self_signalling_env():
+    """The point mass, which sends its own process SIGTERM at the 5th step it takes inside the
+    pipeline's fault guard (exploration's collection, not the spec check or the held-out set): a
+    stop that arrives while the guarded env steps."""
+    import os
+    import signal
+    import sys
+
+    def guarded() -> bool:
+        frame = sys._getframe()
+        while frame is not None:
+            if frame.f_code.co_filename.endswith(os.path.join("envs", "guard.py")):
+                return True
+            frame = frame.f_back
+        return False
+
+    class SelfSignalling(OutsidePoint):
+        steps = 0
+
+        def step(self, action):
+            if guarded():
+                SelfSignalling.steps += 1
+                if SelfSignalling.steps == 5:
+                    os.kill(os.getpid(), signal.SIGTERM)
+            return super().step(action)
+
+    from torchrl.envs import GymWrapper
+
+    return GymWrapper(SelfSignalling())
+

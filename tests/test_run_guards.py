@@ -154,3 +154,19 @@ def test_a_failed_atomic_write_keeps_the_old_file_and_names_the_path(tmp_path):
         _atomic_write(path, half_then_full)
     assert e.value.errno == errno.ENOSPC and e.value.filename == str(path)
     assert path.read_text() == "good" and sorted(p.name for p in tmp_path.iterdir()) == ["report.json"]
+
+
+def test_a_stop_that_arrives_while_the_env_steps_is_not_taken_for_an_env_fault(tmp_path):
+    """SIGTERM inside ``env.step`` stops the run (exit 143, nothing of the episode kept), instead of
+    the env's fault guard ending the episode early and the run carrying on with a shorter one."""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parent)}
+    run = tmp_path / "run"
+    out = subprocess.run([sys.executable, "-m", "torchrl_softae.pipeline.cli", "explore", "--env",
+                          "outside_envs:self_signalling_env", "--run-dir", str(run), "--preset", "quick",
+                          "--episodes", "2", "--episode-length", "10", "--set", "heldout_size=20",
+                          "--wandb", "disabled", "--quiet"], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 143, out.stderr[-2000:]
+    assert out.stderr.strip().splitlines()[-1].startswith("softae: stopped by SIGTERM at episode 1 of 2")
+    assert "EnvFaultWarning" not in out.stderr and "Traceback" not in out.stderr
+    assert RunDir(run).history() == []  # the interrupted episode is not on disk
+

@@ -109,10 +109,11 @@ def _read_holder(fd: int) -> dict:
         return {"pid": "?", "host": "?", "started": "? (unreadable lock file)"}
 
 
-class Stopped(Exception):
+class Stopped(BaseException):
     """The run was asked to stop by ``signum``; the process should exit with :attr:`exit_code`.
     ``done`` and ``total``: the complete episodes on disk and the run's episodes, where the run that
-    stopped knows them."""
+    stopped knows them. A ``BaseException``, as ``KeyboardInterrupt``: no ``except Exception``
+    (an env's fault guard, a user's env) may take a stop for an error and carry on."""
 
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
