@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -36,22 +35,10 @@ from planning_speed import cpu_description  # noqa: E402
 from torchrl_softae.modules import moments_kernel, paths, silu_kernel  # noqa: E402
 from torchrl_softae.pipeline.data import COVERAGE_BINS  # noqa: E402
 from torchrl_softae.pipeline.plots import method_color  # noqa: E402
+from torchrl_softae.pipeline.replication import code_version  # noqa: E402
 
 #: env -> results folder name (and run dirs' folder under results/runs/)
 SETUPS = {"SoftArm-v1": "arm_v1", "SoftArm136-v1": "arm136_v1"}
-
-
-def code_version() -> dict:
-    """The commit that wrote this result (and whether the tree had uncommitted changes; a resumed
-    run may have started on an earlier one): the code's arithmetic
-    can change between commits without changing the method (e.g. Adam's fused kernel)."""
-    def git(*args):
-        try:
-            return subprocess.run(["git", *args], cwd=Path(__file__).parent, capture_output=True, text=True,
-                                  timeout=10).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return ""
-    return {"commit": git("rev-parse", "HEAD") or None, "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
 
 
 def results_dir(env: str) -> Path:

@@ -237,7 +237,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         device=None,
         kernels: str = "auto",
     ):
-        self_kernels = kernels_allowed(kernels)  # a bad choice is refused before anything is built
+        uses_kernels = kernels_allowed(kernels)  # a bad choice is refused before anything is built
         for name, value, low in (
             ("observation_dim", observation_dim, 1),
             ("action_dim", action_dim, 1),
@@ -259,7 +259,7 @@ class EnsembleWorldModel(TensorDictModuleBase):
         self.symlog_observations = bool(symlog_observations)
         self.kernels = kernels
         #: whether this model may run compiled kernels (``kernels="auto"`` and not ``SOFTAE_KERNELS=0``)
-        self.uses_kernels = self_kernels
+        self.uses_kernels = uses_kernels
         sizes = [observation_dim + action_dim] + [num_cells] * depth
         out = 2 * observation_dim if probabilistic else observation_dim
         self.layers = nn.ModuleList(
@@ -584,8 +584,8 @@ class EnsembleWorldModel(TensorDictModuleBase):
     def _conv_weights(self, layer: EnsembleLinear, dtype: torch.dtype, cols: int | None, groups: int,
                       rows: int | None = None):
         """``layer`` as a grouped 1x1 convolution: weight ``(L * out, in, 1, 1)`` in channels-last
-        (oneDNN's fast path needs the weight in the input's memory format) and bias ``(L * out,)``. The first layer's members share the input:
-        the same weight with ``groups=1``.
+        (oneDNN's fast path needs the weight in the input's memory format) and bias ``(L * out,)``.
+        The first layer's members share the input: the same weight with ``groups=1``.
 
         ``rows``: also pack the weight into oneDNN's own blocked layout for inputs of that many rows,
         once, instead of oneDNN reordering the plain weight at every call (a large part of a bf16

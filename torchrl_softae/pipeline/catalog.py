@@ -15,10 +15,12 @@ from torchrl_softae.references import BadReference
 from torchrl_softae.tasks import Task, load_tasks, tasks_for
 
 __all__ = ["EnvEntry", "get_env_entry", "env_ids", "get_tasks", "get_task", "run_entry", "parse_coverage_dims",
-           "heldout_note", "RANDOM_HELDOUT_NOTE"]
+           "heldout_note", "RANDOM_HELDOUT_NOTE", "ENV_HELDOUT"]
 
 #: said wherever the metric of an outside env is shown: random actions are Random's own distribution
 RANDOM_HELDOUT_NOTE = "held-out set: random-action episodes (favours Random)"
+#: an evaluation's ``heldout_set`` where the run measured on its catalog env's own held-out set
+ENV_HELDOUT = "the env's own"
 
 
 _ENTRIES: dict[str, EnvEntry] = {}

@@ -74,6 +74,7 @@ def _engine(precision: str, threads: int) -> str:
 
 
 def cmd_evaluate(args) -> int:
+    from torchrl_softae.pipeline.catalog import ENV_HELDOUT
     from torchrl_softae.pipeline.evaluate import evaluate_run
 
     _threads(args.threads)
@@ -81,7 +82,7 @@ def cmd_evaluate(args) -> int:
     res = evaluate_run(args.run_dir, tasks=args.task or None, episodes=args.episodes, seed=args.seed,
                        propagation=args.propagation, progress=progress, planner_overrides=args.overrides,
                        references=args.references)
-    note = "" if res["heldout_set"] == "the env's own" else f" [{res['heldout_set']}]"
+    note = "" if res["heldout_set"] == ENV_HELDOUT else f" [{res['heldout_set']}]"
     print(f"{args.run_dir}: held-out normalized MSE {res['heldout_nmse']:.4g}{note}")
     for name, r in res["tasks"].items():
         extra = _metrics_summary(r["metrics"])
@@ -132,8 +133,6 @@ def cmd_plot(args) -> int:
 
 
 def cmd_sweep(args) -> int:
-    from torchrl_softae.pipeline.arguments import explore_parser
-    from torchrl_softae.pipeline.catalog import heldout_note
     from torchrl_softae.pipeline.config import ConfigError
     from torchrl_softae.pipeline.sweep import check_ray_target, expand, load_sweep, run_local, run_ray, trial_status
 
@@ -154,7 +153,7 @@ def cmd_sweep(args) -> int:
           + f"; {len(trials) - len(todo)} finished, {len(todo)} to run, under {root}")
     for t in trials:
         print(f"softae explore {' '.join(t.argv)}   [{status[t.name]}]", flush=True)
-    for note in sorted({heldout_note(_config(explore_parser().parse_args(t.argv))) for t in trials} - {""}):
+    for note in sorted({t.heldout_note for t in trials} - {""}):
         print(f"note: {note}", flush=True)
     if args.dry_run or not todo:
         return 0

@@ -2,6 +2,7 @@
 set (cached) and the model-accuracy and coverage metrics."""
 from __future__ import annotations
 
+import functools
 import os
 import random
 import time
@@ -97,12 +98,19 @@ TRANSITION_KEYS = ("observation", "action", ("next", "observation"))
 def load_transitions(path: str | Path, state_dim: int, action_dim: int) -> TensorDictBase:
     """Transitions from ``path`` (a TensorDict saved with ``torch.save``, or a memmap directory
     written by ``TensorDict.memmap``), flattened to ``(N,)`` and cast to float32; a ValueError
-    names what is missing or mis-shaped."""
-    from tensordict import TensorDict
-
+    names what is missing or mis-shaped. Read once per process while the file is unchanged: a run
+    validates its config and measures on the same file."""
     path = Path(path)
     if not path.exists():
         raise ValueError(f"--heldout {str(path)!r}: no such file or directory")
+    stat = path.stat()
+    return _load_transitions(path.resolve(), stat.st_mtime_ns, stat.st_size, state_dim, action_dim)
+
+
+@functools.lru_cache(maxsize=4)
+def _load_transitions(path: Path, mtime_ns: int, size: int, state_dim: int, action_dim: int) -> TensorDictBase:
+    from tensordict import TensorDict
+
     try:
         td = TensorDict.load_memmap(path) if path.is_dir() else torch.load(path, weights_only=False)
     except Exception as e:  # noqa: BLE001 (any unreadable file is the same one-line error)

@@ -10,7 +10,7 @@ import torch
 from torchrl_softae.envs.model_env import PROPAGATION_MODES
 from torchrl_softae.modules import EnsembleWorldModel
 from torchrl_softae.pipeline.builders import build_planner_policy, build_world_model
-from torchrl_softae.pipeline.catalog import get_env_entry, get_task, get_tasks, heldout_note, run_entry
+from torchrl_softae.pipeline.catalog import ENV_HELDOUT, get_env_entry, get_task, get_tasks, heldout_note, run_entry
 from torchrl_softae.pipeline.config import ConfigError, ExploreConfig, apply_overrides
 from torchrl_softae.pipeline.data import ModelAccuracy, episode_seed, make_real_env, seed_everything
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir
@@ -192,10 +192,12 @@ def reference_returns(env: str, task: str | Task, policy: str = "random", episod
 def evaluate_run(
     run_dir: str | Path, tasks: list[str] | None = None, episodes: int = 3, seed: int = 0,
     propagation: str = "mean", progress: bool = True, planner_overrides: list[str] | None = None,
-    references: bool = False,
+    references: bool = False, task_episodes: dict[str, int] | None = None,
 ) -> dict:
     """Zero-shot returns on ``tasks`` (names of the env's tasks or ``module:attr`` references;
     default: all of the env's) and held-out normalized MSE.
+
+    ``episodes`` per task, or ``task_episodes[name]`` for the tasks that map names there.
 
     ``planner_overrides`` (``["planner.horizon=30", ...]``) plan the tasks differently from the
     exploration. Results are written to ``RUN/eval/TASK.json`` (``TASK@key=value,...json`` with
@@ -216,17 +218,18 @@ def evaluate_run(
     except ValueError as e:
         raise ConfigError(str(e)) from None
     out = {"env": cfg.env, "method": cfg.method, "seed": cfg.seed, "episodes_explored": state["episode"] + 1,
-           "transitions": state["num_transitions"], "heldout_set": heldout_note(cfg) or "the env's own"}
+           "transitions": state["num_transitions"], "heldout_set": heldout_note(cfg) or ENV_HELDOUT}
     accuracy = ModelAccuracy(entry, run, cfg.heldout_size, announce=print if progress else None)
     out.update(accuracy(model))
     out.update(accuracy.baselines)
     run.write_json(run.eval_dir / "model_accuracy.json", dict(out))
     out["tasks"] = {}
     for name, task in chosen.items():
-        res = zero_shot(cfg, model, task, episodes=episodes, seed=seed, propagation=propagation, progress=progress)
+        n = (task_episodes or {}).get(name, episodes)
+        res = zero_shot(cfg, model, task, episodes=n, seed=seed, propagation=propagation, progress=progress)
         res["mean_return"] = float(np.mean(res["returns"]))
         # which model was evaluated: a resumed, longer exploration makes this result stale
-        res.update(propagation=propagation, beta=cfg.beta, seed=seed, episodes=episodes, planner=dict(vars(cfg.planner)),
+        res.update(propagation=propagation, beta=cfg.beta, seed=seed, episodes=n, planner=dict(vars(cfg.planner)),
                    episodes_explored=out["episodes_explored"], success_metric=task.success_metric)
         run.write_json(run.eval_dir / eval_file_name(name, planner_overrides), res)
         out["tasks"][name] = res

@@ -237,7 +237,8 @@ def _comparison_bars(by_method: dict[str, list[dict]], entry, title: str, budget
     one run's ``history`` (per episode), ``evals`` (task -> evaluation) and ``references``
     (label -> task -> model-free returns)."""
     plt = _plt()
-    env = entry.env_id if entry is not None else next(iter(by_method.values()))[0]["config"]["env"]
+    first_config = next(iter(by_method.values()))[0]["config"]
+    env = entry.env_id if entry is not None else first_config["env"]
     methods = label_order(by_method)
     colors = [method_color(m) for m in methods]  # a method's colour in every panel and figure
     written = []
@@ -250,7 +251,7 @@ def _comparison_bars(by_method: dict[str, list[dict]], entry, title: str, budget
     ax.set_ylim(allv.min() / 3, allv.max() * 3)  # a decade of room: bar heights stay comparable
     ax.set_ylabel("held-out normalized MSE")
     # the env on a line of its own: a figure this narrow cut the one-line title off
-    note = _heldout_title(next(iter(by_method.values()))[0]["config"])
+    note = _heldout_title(first_config)
     ax.set_title(f"{env}\n{budget}, {seed_text}\nbar: mean, whiskers: min-max, dots: seeds{note}", fontsize=9)
     written.append(_save(fig, out_dir / f"{prefix}mse_bars.png"))
 

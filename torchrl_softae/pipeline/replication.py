@@ -103,16 +103,15 @@ def machine() -> dict:
                         (amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel)}}
 
 
-def run_budgets(trial, cfg, on_episode=None) -> list[Path]:
+def run_budgets(trial, cfg, on_episode=None) -> list[dict]:
     """Explore ``trial``'s run to each budget that has no record yet, evaluate it there and write
-    its record; returns the records written. A budget the run already went past cannot be
+    its record; returns the run's history (the last budget's). A budget the run already went past cannot be
     evaluated any more (its model is gone): one clear error."""
     from torchrl_softae.pipeline.evaluate import evaluate_run
     from torchrl_softae.pipeline.explore import explore
     from torchrl_softae.pipeline.runs import RunDir, atomic_write_text
 
     block, ev = trial.replication, trial.evaluate
-    written = []
     for budget in missing_budgets(block, trial.run_dir):
         done = len(RunDir(trial.run_dir).history())
         if done > budget:
@@ -122,16 +121,12 @@ def run_budgets(trial, cfg, on_episode=None) -> list[Path]:
         cfg_b = dataclasses.replace(cfg, episodes=budget)
         history = explore(cfg_b, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
         t0 = time.perf_counter()
-        by_episodes: dict[int, list[str]] = {}
-        for name in ev["task_names"]:
-            by_episodes.setdefault(block["task_episodes"].get(name, int(ev.get("episodes", 3))), []).append(name)
         overrides = [f"planner.{k}={v}" for k, v in (ev.get("planner") or {}).items()] or None
-        tasks, accuracy = {}, {}
-        for episodes, names in by_episodes.items():
-            res = evaluate_run(trial.run_dir, tasks=names, episodes=episodes, propagation=ev.get("propagation", "mean"),
-                               progress=False, planner_overrides=overrides)
-            accuracy = {k: v for k, v in res.items() if k.startswith("heldout_")}
-            tasks.update({name: {**r, "planner_horizon": r["planner"]["horizon"]} for name, r in res["tasks"].items()})
+        res = evaluate_run(trial.run_dir, tasks=ev["task_names"], episodes=int(ev.get("episodes", 3)),
+                           task_episodes=block["task_episodes"], propagation=ev.get("propagation", "mean"),
+                           progress=False, planner_overrides=overrides)
+        accuracy = {k: v for k, v in res.items() if k.startswith("heldout_")}
+        tasks = {name: {**r, "planner_horizon": r["planner"]["horizon"]} for name, r in res["tasks"].items()}
         record = {
             "kind": REPLICATION_KIND, "env": cfg.env, "method": cfg.method, "seed": cfg.seed, "budget": budget,
             "transitions": history[-1]["transitions"], "config": cfg_b.to_dict(), "code": code_version(),
@@ -143,7 +138,6 @@ def run_budgets(trial, cfg, on_episode=None) -> list[Path]:
         path = record_path(block, trial.run_dir, budget)
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(path, json.dumps(record, indent=1, default=float))
-        written.append(path)
         if on_episode is not None:
             on_episode({**history[-1], **{f"return/{k}": v["mean_return"] for k, v in tasks.items()}, "evaluated": 1})
-    return written
+    return RunDir(trial.run_dir).history()

@@ -66,6 +66,7 @@ class Trial:
     # (Tune runs a trial in its own directory)
     search_path: list[str] = field(default_factory=list)
     replication: dict | None = None  # the sweep file's ``replication`` block (pipeline.replication)
+    heldout_note: str = ""  # where its held-out set comes from, when not the catalog env's (catalog.heldout_note)
 
     def to_json(self) -> dict:
         """What a trial process (local or Ray) needs to run it."""
@@ -128,6 +129,7 @@ def expand(spec: dict, root: str | Path) -> tuple[list[Trial], int]:
     """Trials of a sweep, validated (every config checked before anything runs); returns the
     trials and the number of combinations dropped as duplicates (parameters a method ignores)."""
     from torchrl_softae.pipeline.arguments import config_from_args, explore_parser, run_dir_for
+    from torchrl_softae.pipeline.catalog import heldout_note
 
     parser = explore_parser()
     flags = {o[2:].replace("-", "_") for a in parser._actions for o in a.option_strings
@@ -165,7 +167,8 @@ def expand(spec: dict, root: str | Path) -> tuple[list[Trial], int]:
         evaluate = _evaluate_block(spec, cfg)
         trials.append(Trial(name, argv[1:] + [f"--run-dir={run_dir}"], run_dir, cfg.episodes, evaluate, dict(run),
                             policy=_policy_block(spec, cfg), seed=cfg.seed, method=cfg.method,
-                            search_path=[os.getcwd()], replication=replication.check_block(spec, cfg, evaluate)))
+                            search_path=[os.getcwd()], replication=replication.check_block(spec, cfg, evaluate),
+                            heldout_note=heldout_note(cfg)))
     return trials, total - len(trials)
 
 
@@ -297,9 +300,10 @@ def _run_trial(trial: Trial, cfg, on_episode) -> dict:
     from torchrl_softae.pipeline.evaluate import evaluate_run
     from torchrl_softae.pipeline.explore import explore
 
-    if trial.replication:
-        replication.run_budgets(trial, cfg, on_episode)
-    history = explore(cfg, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
+    if trial.replication:  # the last budget is the run's episodes: nothing is left to explore
+        history = replication.run_budgets(trial, cfg, on_episode)
+    else:
+        history = explore(cfg, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
     row = dict(history[-1])
     if trial.evaluate and not trial.replication and not _evaluated(trial):
         ev = trial.evaluate
