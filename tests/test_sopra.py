@@ -349,6 +349,63 @@ def test_twin_targets_reachable(task):
     e.close()
 
 
+def test_reach_any_targets_are_fixed_per_episode_and_reachable():
+    from torchrl_softae.tasks.sopra import tasks
+
+    family = tasks()["reach-any"]
+    a, b = family.for_episode(3), family.for_episode(4)
+    assert a.params == family.for_episode(3).params  # every method sees the same i-th target
+    assert a.params != b.params
+    for task in (a, b):  # a settled tip under capped pressures: below the base, within the arm's reach
+        target = np.asarray(task.params["target"])
+        assert -0.30 < target[2] < -0.15 and np.linalg.norm(target[:2]) < 0.12, target
+
+
+def test_reference_paths_have_the_stated_size():
+    from torchrl_softae.tasks.sopra import reference_path
+
+    center = np.array([0.01, -0.02, -0.25])
+    square = reference_path("square", center)
+    assert square.shape == (80, 3) and np.allclose(square[:, 2], -0.25)
+    assert np.allclose(square[0], square[-1]) and np.allclose(np.ptp(square[:, :2], axis=0), 0.03)
+    assert np.allclose(square.mean(axis=0)[:2], center[:2], atol=1e-3)
+    lemniscate = reference_path("lemniscate", center)
+    assert np.allclose(np.ptp(lemniscate[:, :2], axis=0), [0.04, 0.02], atol=1e-3)
+    with pytest.raises(ValueError, match="shape 'circle'"):
+        reference_path("circle", center)
+
+
+def test_tracking_moves_the_target_every_step_and_scores_each_step_against_its_point():
+    from torchrl_softae.envs.robots.reach import reach_reward
+    from torchrl_softae.pipeline.evaluate import _task_rollouts, episode_seed
+    from torchrl_softae.tasks.sopra import reference_path, tasks
+
+    def ramp(real, seed, task):  # pressures up in chambers 0 and 3: the tip leaves the rest point
+        return lambda td: td.set("action", torch.tensor([0.5, 0, 0, 0.5, 0, 0]))
+
+    family = tasks()["track-square"]
+    res = _task_rollouts("SoPrA-v0", family, 1, 0, ramp)
+    metrics = res["metrics"][0]
+    tips = torch.tensor(metrics["tips"])
+    assert tips.shape == (79, 3)
+    path = torch.as_tensor(reference_path("square", metrics["target_center"]), dtype=torch.float32)
+    # reward of step t against point t + 1 (the one the action should reach); an off-by-one in
+    # advancing the target scores a different sum
+    expected = reach_reward((tips - path[1:]).norm(dim=-1)).sum()
+    assert res["returns"][0] == pytest.approx(float(expected), rel=1e-5)
+    assert float(reach_reward((tips - path[:-1]).norm(dim=-1)).sum()) != pytest.approx(res["returns"][0], rel=1e-3)
+    horizontal = ((tips[:, :2] - path[1:, :2]).norm(dim=-1) * 1e3)
+    assert metrics["mean_error_mm"] == pytest.approx(float(horizontal.mean()), rel=1e-5)
+    assert family.for_episode(episode_seed(0, 0)).params["center"] == metrics["target_center"]
+
+
+def test_a_family_of_targets_is_no_training_task():
+    from torchrl_softae.pipeline.config import ConfigError, make_config
+
+    with pytest.raises(ConfigError, match="'track-square' is a family of targets .*: hucrl explores on one fixed"):
+        make_config("SoPrA-v0", "hucrl", task="track-square")
+
+
 def test_lost_body_vents_and_ends_episode_and_overruns_are_reported():
     e = SoPrAEnv("sim", install_signal_handlers=False, control_period=0.05)
     e.set_seed(0)

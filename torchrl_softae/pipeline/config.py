@@ -198,8 +198,10 @@ class ExploreConfig:
             raise ConfigError(f"policy.real_ratio={self.policy.real_ratio!r}; expected in [0, 1]")
         if not 0 < self.policy.gamma <= 1 or not 0 < self.policy.tau <= 1:
             raise ConfigError(f"policy.gamma={self.policy.gamma!r} and policy.tau={self.policy.tau!r}: expected in (0, 1]")
-        if method.trains_policy and task is not None and task.instantiate is not None:
-            raise ConfigError(f"task {self.task!r} is a family of targets: a SAC policy needs one fixed task "
+        if method.needs_task and task is not None and task.instantiate is not None:
+            # the family's own reward is a placeholder: only its per-episode tasks have a target
+            raise ConfigError(f"task {self.task!r} is a family of targets (one per evaluation episode): "
+                              f"{self.method} explores on one fixed task "
                               f"(choose one of {', '.join(t for t in tasks if entry.tasks[t].instantiate is None)})")
         if self.model.kernels not in KERNEL_CHOICES:
             raise ConfigError(f"model.kernels={self.model.kernels!r}; valid: {', '.join(KERNEL_CHOICES)}")

@@ -52,6 +52,8 @@ def _task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for) -
         seed_everything(s)
         reward.task = episode_task = task.for_episode(s)
         policy = policy_for(real, s, episode_task)
+        if episode_task.advance is not None:
+            policy = _Advancing(policy, episode_task.advance)
         real.set_seed(s)
         traj = real.rollout(task.horizon, policy, break_when_any_done=True)
         starts.append(traj[0]["observation"].tolist())
@@ -61,6 +63,18 @@ def _task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for) -
             metrics[-1].update({f"target_{k}": v for k, v in episode_task.params.items()})
     real.close()
     return {"returns": returns, "metrics": metrics, "initial_states": starts}
+
+
+class _Advancing:
+    """``policy`` that first moves a time-varying task's reference to the step it acts at."""
+
+    def __init__(self, policy, advance):
+        self.policy, self.advance, self.t = policy, advance, 0
+
+    def __call__(self, tensordict):
+        self.advance(self.t)
+        self.t += 1
+        return self.policy(tensordict)
 
 
 def eval_file_name(task: str, planner_overrides: list[str] | None = None) -> str:
@@ -107,7 +121,7 @@ def zero_shot(
     def planner(real, s, episode_task):
         return task_policy(cfg, model, episode_task, real.action_spec, propagation, seed=s, progress=bar)
 
-    if batched and episodes > 1 and task.instantiate is None:
+    if batched and episodes > 1 and task.instantiate is None and task.advance is None:
         res = _task_rollouts_batched(cfg.env, task, episodes, seed, planner)
     else:
         res = _task_rollouts(cfg.env, task, episodes, seed, planner)

@@ -42,6 +42,9 @@ class Task:
             (shown next to the return in reports), if any.
         instantiate: for a family of tasks (e.g. "reach any target"), ``seed -> Task``: the
             concrete task of one evaluation episode.
+        advance: for a time-varying task (tracking a reference path), ``t -> None``: moves the
+            reference to step ``t``'s; the evaluation calls it before each action, so the planner and
+            the reward see the reference of the step being planned.
     """
 
     name: str
@@ -52,6 +55,7 @@ class Task:
     params: dict = field(default_factory=dict)
     success_metric: str | None = None
     instantiate: Callable[[int], "Task"] | None = None
+    advance: Callable[[int], None] | None = None
 
     def reward(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor) -> torch.Tensor:
         r = self.reward_fn(observation, action, next_observation)
