@@ -29,13 +29,13 @@ heavy.
   icem-bf16-dedup   same with bf16 hidden layers
   icem-deadline     SoftAE bf16 with a 50 ms wall-clock budget per action (fp32 where bf16 is not native)
   ...@PATH          (--compare-paths) the four icem rows with the ensemble's inference path fixed
-                    (each of EnsembleWorldModel.available_inference_paths(dtype)) instead of measured at first use
+                    (each of model.engine.available_inference_paths(dtype)) instead of measured at first use
   ...@torch-moments (--compare-moments) the four icem rows with mu and sigma computed by torch ops
-                    (EnsembleWorldModel.fused_moments = False) instead of the one-pass kernel
-  ...@torch-randn   (--compare-noise) the four icem rows with every normal draw by torch.randn
-                    (normal_kernel.enabled = False) instead of the counter-based kernel
+                    (model.engine.fused_moments = False) instead of the one-pass kernel
+  ...@torch-randn   (--compare-noise) the four icem rows with the model's normal draws by torch.randn
+                    (model.engine.kernel_noise = False) instead of the counter-based kernel
   ...@step-loop     (--compare-rollout) the four icem rows scored by the per-step tensor loop
-                    (EnsembleModelEnv.deterministic_rollouts / sampled_rollouts = False) instead of
+                    (model.engine.rollouts = False) instead of
                     the model's deterministic (one particle) or sampled (ten) rollout, prepared
                     kernel calls
 
@@ -105,8 +105,8 @@ from torchrl_softae import keep_freed_memory
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner
 from torchrl_softae.modules.ensemble import ensemble_std
-from torchrl_softae.modules import amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel
-from torchrl_softae.modules.precision import (
+from torchrl_softae.modules.engine import amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel
+from torchrl_softae.modules.engine.precision import (
     cpu_flags, cpu_info, cpu_name, fast_bf16_available, onednn_bf16_available, resolve_planning_dtype)
 
 SHAPES = [  # (name, d_s, d_a, H)
@@ -243,8 +243,7 @@ def layer_costs(repeats: int, calls: int = 50, L: int = 5, h: int = 256,
         x_in = torch.randn(n, 70, generator=torch.Generator().manual_seed(0))
         for name in precisions:
             def network(dtype=resolve_planning_dtype(name), x_in=x_in, with_logvar=label == "10 particles"):
-                model.planning_dtype = dtype
-                model.network_output(x_in, with_logvar)
+                model.network_output(x_in, with_logvar, dtype)
             jobs[(label, name, "network")] = network
         for name in precisions:
             dtype = resolve_planning_dtype(name) or torch.float32
@@ -336,36 +335,32 @@ def loop_overhead(repeats: int, d_s: int = 58, d_a: int = 12, H: int = 10,
 
     def ours(prec, fused_moments=True):
         def fn():
-            model.fused_moments = fused_moments
+            model.engine.fused_moments = fused_moments
             try:
                 return base.evaluate_action_sequences(start, seqs, num_particles=1, env=env, precision=prec)[0]
             finally:
-                model.fused_moments = True
+                model.engine.fused_moments = True
         return fn
 
     def hand(dtype):
         def fn():
-            model.planning_dtype = dtype
             s = start["observation"].expand(rows, d_s)
             ret = torch.zeros(rows)
             for h in range(H):
                 a, eta = seqs[0, :, h, :d_a], 2.0 * seqs[0, :, h, d_a:]
-                y, _ = model.network((torch.cat([s, a], -1) - inn.loc) / inn.scale, with_logvar=False)
+                y, _ = model.network((torch.cat([s, a], -1) - inn.loc) / inn.scale, with_logvar=False, dtype=dtype)
                 members = torch.addcmul(s + out_norm.loc, out_norm.scale, y)
                 mu = members.mean(0)
                 sigma = ensemble_std(members, mu)
                 s = torch.addcmul(mu, sigma, eta)
                 ret += sigma.square().sum(-1).sqrt()
-            model.planning_dtype = None
             return ret
         return fn
 
     def network(dtype):
         def fn():
-            model.planning_dtype = dtype
             for _ in range(H):
-                model.network(x, with_logvar=False)
-            model.planning_dtype = None
+                model.network(x, with_logvar=False, dtype=dtype)
         return fn
 
     parts = ["ours", "hand", "network"] + (["ours_torch_moments"] if moments_kernel.available() else [])
@@ -532,7 +527,7 @@ def flops_per_action(model, rows, H, iters, first_rows=None, with_logvar=True):
 class RecordNetworkCalls:
     """Records the input shape and ``with_logvar`` of every network call inside the block: every
     ``model.network_output`` call, and the steps of a planning rollout where they run as prepared
-    kernel calls, without it (``EnsembleWorldModel.deterministic_rollout`` and ``sampled_rollout``:
+    kernel calls, without it (``model.engine.deterministic_rollout`` and ``sampled_rollout``:
     their ``network_calls``). The instance's methods are wrapped for the block's duration, then the
     class's are back."""
 
@@ -544,9 +539,9 @@ class RecordNetworkCalls:
     def __enter__(self):
         network_output = self.model.network_output
 
-        def recorded(x, with_logvar=True):
+        def recorded(x, with_logvar=True, dtype=None):
             self.calls.append((tuple(x.shape), with_logvar))
-            return network_output(x, with_logvar)
+            return network_output(x, with_logvar, dtype)
 
         def recording(make_rollout):
             def recorded_rollout(*args, **kwargs):
@@ -558,13 +553,13 @@ class RecordNetworkCalls:
 
         self.model.network_output = recorded
         for name in self.ROLLOUTS:
-            setattr(self.model, name, recording(getattr(self.model, name)))
+            setattr(self.model.engine, name, recording(getattr(self.model.engine, name)))
         return self
 
     def __exit__(self, *exc):
         del self.model.network_output
         for name in self.ROLLOUTS:
-            delattr(self.model, name)
+            delattr(self.model.engine, name)
 
     def flops(self) -> int:
         """The ensemble FLOPs of the recorded calls (rows x every member's matmuls, the
@@ -606,16 +601,12 @@ class NetworkCallsAlone:
     def __init__(self, recorded: RecordNetworkCalls, precision: str):
         g = torch.Generator().manual_seed(0)
         self.recorded, self.model, self.calls = recorded, recorded.model, recorded.calls
-        self.dtype = self.model.auto_planning_dtype() if precision == "auto" else resolve_planning_dtype(precision)
+        self.dtype = self.model.engine.auto_planning_dtype() if precision == "auto" else resolve_planning_dtype(precision)
         self.inputs = {shape: torch.randn(shape, generator=g) for shape, _ in self.calls}
 
     def __call__(self):
-        prev, self.model.planning_dtype = self.model.planning_dtype, self.dtype
-        try:
-            for shape, with_logvar in self.calls:
-                self.model.network_output(self.inputs[shape], with_logvar)
-        finally:
-            self.model.planning_dtype = prev
+        for shape, with_logvar in self.calls:
+            self.model.network_output(self.inputs[shape], with_logvar, self.dtype)
 
 
 class MbrlIcem:
@@ -687,8 +678,8 @@ def main():
     icem_rows = tuple(k for k in ICEM_ROWS if contender_precision(k) in precisions)
     repeats = max(args.repeats, 5)
     torch.set_num_threads(args.threads)
-    # the draws as this process would make them (SOFTAE_NORMAL_KERNEL=0: torch.randn for every contender)
-    kernel_noise = normal_kernel.available() and normal_kernel.enabled
+    # the draws as this process would make them (SOFTAE_KERNELS=0: torch.randn for every contender)
+    kernel_noise = normal_kernel.available()
     shapes = [s for s in SHAPES if not args.quick or s[0] in ("arm58", "sopra32-H5")]
     cpu = cpu_description()
     out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"planning_speed-{cpu_kind(cpu)}.json"
@@ -735,7 +726,7 @@ def main():
         if args.compare_paths:
             for key in icem_rows:
                 hidden_dtype = resolve_planning_dtype(contender_precision(key)) or torch.float32
-                for path in model.available_inference_paths(hidden_dtype):  # the paths that run in its dtype here
+                for path in model.engine.available_inference_paths(hidden_dtype):  # the paths that run in its dtype here
                     planners[f"{key}@{path}"] = icem_contender(key, sample_env, opt_env, icem)
                     path_of[f"{key}@{path}"] = path
         torch_moments = set()  # contenders whose mu and sigma are torch ops (the kernel's baseline)
@@ -757,11 +748,10 @@ def main():
                 step_loop.add(f"{key}@step-loop")
 
         def configure(key):  # the model as this contender runs it
-            model.inference_path = path_of.get(key, "auto")
-            model.fused_moments = key not in torch_moments
-            normal_kernel.enabled = kernel_noise and key not in torch_randn
-            opt_env.base_env.deterministic_rollouts = key not in step_loop
-            sample_env.base_env.sampled_rollouts = key not in step_loop
+            model.engine.inference_path = path_of.get(key, "auto")
+            model.engine.fused_moments = key not in torch_moments
+            model.engine.kernel_noise = key not in torch_randn
+            model.engine.rollouts = key not in step_loop
 
         alone = {}  # contender -> its plan's network calls, replayed alone (--network-alone)
         with torch.no_grad(), warnings.catch_warnings():
@@ -803,10 +793,10 @@ def main():
                         alone[key]()
                         times[f"{key}:network"].append(time.perf_counter() - t)
                 pk = peaks(repeats=2, so_far=pk, precisions=precisions)  # between rounds, so a noisy moment cannot set the peak
-        model.inference_path, model.fused_moments, normal_kernel.enabled = "auto", True, kernel_noise
-        opt_env.base_env.deterministic_rollouts = sample_env.base_env.sampled_rollouts = True
+        model.engine.inference_path, model.engine.fused_moments = "auto", True
+        model.engine.kernel_noise = model.engine.rollouts = True
         chosen = sorted({f"{'bf16' if k[0] == torch.bfloat16 else 'fp32'} rows<={k[1]}: {v}"
-                         for k, v in model._path_memo.items() if isinstance(v, str)})
+                         for k, v in model.engine._path_memo.items() if isinstance(v, str)})
         timed.append((name, d_s, d_a, H, model, sample_env, planners, times, chosen, alone))
 
     best_peak = best_peaks(pk)

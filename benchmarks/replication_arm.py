@@ -32,7 +32,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from planning_speed import cpu_description  # noqa: E402
 
-from torchrl_softae.modules import moments_kernel, paths, silu_kernel  # noqa: E402
+from torchrl_softae.modules.engine import moments_kernel, paths, silu_kernel  # noqa: E402
 from torchrl_softae.pipeline.data import COVERAGE_BINS  # noqa: E402
 from torchrl_softae.pipeline.plots import method_color  # noqa: E402
 from torchrl_softae.pipeline.replication import code_version  # noqa: E402

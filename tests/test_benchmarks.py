@@ -161,13 +161,13 @@ def test_network_calls_are_recorded_on_every_inference_path():
     records = {}
     for kind, (env, particles) in envs.items():
         for path in ("bmm", "fma-network"):
-            if path in model.available_inference_paths(torch.float32):
-                model.inference_path = path
+            if path in model.engine.available_inference_paths(torch.float32):
+                model.engine.inference_path = path
                 with planning_speed.RecordNetworkCalls(model) as record:
                     env.base_env.evaluate_action_sequences(state, actions[..., :env.action_spec.shape[-1]],
                                                            num_particles=particles, env=env)
                 records[kind, path] = record.calls
-    model.inference_path = "auto"
+    model.engine.inference_path = "auto"
     assert records["softae", "bmm"] == [((6, 7), False)] * 3
     # the first step once for a candidate's particles, with the log-variance head for the noise
     assert records["pets", "bmm"] == [((6, 7), True)] + [((60, 7), True)] * 2

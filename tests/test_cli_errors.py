@@ -98,7 +98,7 @@ def test_log_output_is_plain_lines_without_a_terminal(tmp_path, capsys):
 
 
 def test_the_engine_line_warns_when_bf16_is_asked_for_without_native_bf16(monkeypatch):
-    from torchrl_softae.modules import precision
+    from torchrl_softae.modules.engine import precision
     from torchrl_softae.pipeline.cli import _engine
 
     for native in (True, False):

@@ -54,9 +54,9 @@ def test_members_are_one_batched_computation_matching_independent_mlps():
         assert torch.backends.mkldnn.is_available()  # the CPU build ships oneDNN: the conv path is tested
         for cols in (None, 3):
             want = ref_y if cols is None else ref_y[..., :cols]
-            torch.testing.assert_close(m._network_grouped_conv(xs, torch.float32, cols), want)
-            torch.testing.assert_close(m._network_bmm(xs, torch.float32, cols), want)
-        torch.testing.assert_close(m._network_bmm(xs.expand(5, -1, -1), torch.float32, None), ref_y)
+            torch.testing.assert_close(m.engine._network_grouped_conv(xs, torch.float32, cols), want)
+            torch.testing.assert_close(m.engine._network_bmm(xs, torch.float32, cols), want)
+        torch.testing.assert_close(m.engine._network_bmm(xs.expand(5, -1, -1), torch.float32, None), ref_y)
         with warnings.catch_warnings():  # flags() warns about Intel-GPU TF32, irrelevant here
             warnings.simplefilter("ignore")
             with torch.backends.mkldnn.flags(enabled=False):  # falls back to the matmul path

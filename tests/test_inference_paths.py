@@ -6,9 +6,9 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_softae.modules import EnsembleWorldModel
-from torchrl_softae.modules import ensemble as ensemble_module
-from torchrl_softae.modules import amx_network, fma_network, silu_kernel
-from torchrl_softae.modules.precision import onednn_bf16_available
+from torchrl_softae.modules.engine import network as engine_network
+from torchrl_softae.modules.engine import amx_network, fma_network, silu_kernel
+from torchrl_softae.modules.engine.precision import onednn_bf16_available
 from torchrl_softae.objectives import EnsembleLoss
 
 
@@ -20,43 +20,43 @@ def _model(**kw):
 def test_inference_path_is_measured_once_cached_on_disk_and_can_be_fixed(tmp_path, monkeypatch):
     import json
 
-    from torchrl_softae.modules import paths
+    from torchrl_softae.modules.engine import paths
 
     monkeypatch.setenv("TORCHRL_SOFTAE_CACHE", str(tmp_path))
     monkeypatch.setattr(paths, "_MEMORY", {})
     model = EnsembleWorldModel(6, 2, num_cells=32, depth=2).eval()
     x = torch.randn(300, 8)
     with torch.no_grad():
-        first = model._inference_path(x, torch.float32, None)
+        first = model.engine._inference_path(x, torch.float32, None)
         assert first in paths.INFERENCE_PATHS
         stored = json.loads((tmp_path / "paths.json").read_text())
         assert list(stored.values()) == [first] and "rows 512" in next(iter(stored))
         (key, choice), = paths.choices().items()  # what a run records: the choice, without the machine
         assert choice == first and key.startswith("ensemble 5|") and "rows 512" in key
         monkeypatch.setattr(paths, "_MEMORY", {})  # a new process reads the disk: the same choice
-        model._path_memo.clear()
-        assert model._inference_path(torch.randn(400, 8), torch.float32, None) == first
+        model.engine._path_memo.clear()
+        assert model.engine._inference_path(torch.randn(400, 8), torch.float32, None) == first
         expected = ("conv", "conv-fused", "bmm") + (("conv-silu-kernel", "bmm-silu-kernel") if silu_kernel.available()
                                                     else ()) + (("amx-network",) if amx_network.available() else ()) \
             + (("fma-network",) if fma_network.available() else ())
-        assert model.available_inference_paths() == expected
-        usable = model.available_inference_paths(torch.float32)  # amx-network is bf16 only
+        assert model.engine.available_inference_paths() == expected
+        usable = model.engine.available_inference_paths(torch.float32)  # amx-network is bf16 only
         assert usable == tuple(p for p in expected if p != "amx-network")
         # fma-network computes bf16 where the CPU has AVX512-BF16
-        assert ("fma-network" in model.available_inference_paths(torch.bfloat16)) == fma_network.available(
+        assert ("fma-network" in model.engine.available_inference_paths(torch.bfloat16)) == fma_network.available(
             torch.bfloat16)
         for forced in usable:
-            monkeypatch.setenv("SOFTAE_INFERENCE_PATH", forced)
-            assert model._inference_path(x, torch.float32, None) == forced
-        monkeypatch.delenv("SOFTAE_INFERENCE_PATH")
+            model.engine.inference_path = forced
+            assert model.engine._inference_path(x, torch.float32, None) == forced
+        model.engine.inference_path = "auto"
         outs = {}
         for path in usable:
-            model.inference_path = path
+            model.engine.inference_path = path
             outs[path] = model.network(model.input_normalizer.normalize(x))[0]
         for path in usable:  # the same function either way
             torch.testing.assert_close(outs[path], outs["bmm"], rtol=1e-4, atol=1e-5)
     relu = EnsembleWorldModel(6, 2, num_cells=32, depth=2, activation_class=torch.nn.ReLU).eval()
-    relu.inference_path = "conv-silu-kernel"
+    relu.engine.inference_path = "conv-silu-kernel"
     with torch.no_grad(), pytest.raises(RuntimeError, match="'conv-silu-kernel' needs nn.SiLU"):
         relu.network(x)
 
@@ -66,8 +66,8 @@ def test_the_cache_key_tells_apart_machines_with_the_same_model_name():
     """Two virtual machines both named "AMD EPYC", one with AVX-512 and one with AVX2 only, rank
     the inference paths differently: a choice measured on one must not be read on the other, nor
     one measured before the compiled SiLU ran on this instruction set."""
-    from torchrl_softae.modules.paths import cpu_key
-    from torchrl_softae.modules.precision import parse_cpuinfo
+    from torchrl_softae.modules.engine.paths import cpu_key
+    from torchrl_softae.modules.engine.precision import parse_cpuinfo
 
     avx512 = ("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 17\n"
               "model name\t: AMD EPYC\nflags\t\t: fpu sse2 avx2 fma avx512f avx512bw avx512_bf16\n\n"
@@ -85,8 +85,8 @@ def test_the_cache_key_tells_apart_machines_with_the_same_model_name():
 def test_arm_cpuinfo_features_are_read_as_flags():
     """aarch64's /proc/cpuinfo lists its flags as ``Features`` and names the CPU by implementer and
     part: BFloat16 (``bf16``) must be seen, and two ARM cores must not share a cache key."""
-    from torchrl_softae.modules.paths import cpu_key
-    from torchrl_softae.modules.precision import flags_of, parse_cpuinfo
+    from torchrl_softae.modules.engine.paths import cpu_key
+    from torchrl_softae.modules.engine.precision import flags_of, parse_cpuinfo
 
     neoverse_v1 = parse_cpuinfo("processor\t: 0\nBogoMIPS\t: 2100.00\nFeatures\t: fp asimd sve bf16 i8mm\n"
                                 "CPU implementer\t: 0x41\nCPU architecture: 8\nCPU part\t: 0xd40\n\n")
@@ -104,46 +104,46 @@ def test_fused_activation_path_computes_what_the_training_path_computes(activati
     model = EnsembleWorldModel(6, 2, num_cells=32, depth=3, activation_class=activation).eval()
     x = torch.randn(300, 8)
     ref = model.network(x)[0].detach()  # grad enabled: the training path
-    model.inference_path = "conv-fused"
+    model.engine.inference_path = "conv-fused"
     with torch.no_grad():
         torch.testing.assert_close(model.network(x)[0], ref, rtol=1e-4, atol=1e-5)
-        model.planning_dtype = torch.bfloat16
+        bf16 = torch.bfloat16
         if not onednn_bf16_available():  # e.g. AVX2 only: oneDNN has no bf16 convolution to fuse into
             with pytest.raises(RuntimeError, match="needs oneDNN's bf16 convolution"):
-                model.network(x)
+                model.network(x, dtype=bf16)
             return
-        assert (model.network(x)[0] - ref).abs().max() < 0.05 * ref.abs().max()
+        assert (model.network(x, dtype=bf16)[0] - ref).abs().max() < 0.05 * ref.abs().max()
 
 
 def test_without_onednn_bf16_the_conv_paths_run_bf16_unpacked_and_auto_never_fuses(monkeypatch):
     """Where oneDNN has no bf16 convolution (a CPU with AVX2 only: its fused and pre-packed ops
     raise for bf16), bf16 on the conv paths runs torch's plain convolution on unpacked weights, the
     measured choice never offers the fused path, and forcing it names what is missing."""
-    monkeypatch.setattr(ensemble_module, "onednn_bf16_available", lambda: False)
+    monkeypatch.setattr(engine_network, "onednn_bf16_available", lambda: False)
     torch.manual_seed(0)
     model = EnsembleWorldModel(6, 2, num_cells=32, depth=3).eval()
     x = torch.randn(300, 8)
     ref = model.network(x)[0].detach()
-    model.planning_dtype = torch.bfloat16
+    bf16 = torch.bfloat16
     with torch.no_grad():
         for path in ("conv", "bmm"):
-            model.inference_path = path
-            assert (model.network(x)[0] - ref).abs().max() < 0.05 * ref.abs().max()
-        bf16_conv = [key for key in model._inference_cache if key[1:3] == ("conv", torch.bfloat16)]
+            model.engine.inference_path = path
+            assert (model.network(x, dtype=bf16)[0] - ref).abs().max() < 0.05 * ref.abs().max()
+        bf16_conv = [key for key in model.engine._inference_cache if key[1:3] == ("conv", torch.bfloat16)]
         assert bf16_conv and all(key[4] is None for key in bf16_conv)  # (id, "conv", dtype, cols, rows packed for)
-        model.inference_path = "conv-fused"
+        model.engine.inference_path = "conv-fused"
         with pytest.raises(RuntimeError, match="'conv-fused' in torch.bfloat16 needs oneDNN's bf16 convolution"):
-            model.network(x)
-        model.inference_path = "auto"
+            model.network(x, dtype=bf16)
+        model.engine.inference_path = "auto"
         chosen = []
-        monkeypatch.setattr(ensemble_module.paths, "choose", lambda key, candidates: chosen.append(
+        monkeypatch.setattr(engine_network.paths, "choose", lambda key, candidates: chosen.append(
             (key, sorted(candidates))) or "conv")
-        model.network(x)
+        model.network(x, dtype=bf16)
     (key, candidates), = chosen
     assert "conv-fused" not in candidates and "plain conv weights" in key
 
 
-@pytest.mark.skipif(ensemble_module._PACK_CONV_WEIGHT is None, reason="this torch build has no oneDNN weight pre-packing")
+@pytest.mark.skipif(engine_network._PACK_CONV_WEIGHT is None, reason="this torch build has no oneDNN weight pre-packing")
 def test_packed_conv_weights_match(monkeypatch):
     """Weights pre-packed into oneDNN's layout once give the plain-weight convolutions' results, in
     fp32 and bf16, fused or not, at row counts other than the one they were packed for (bit for
@@ -151,32 +151,31 @@ def test_packed_conv_weights_match(monkeypatch):
     for a single row rounds differently); an optimizer step re-packs them (no stale weights)."""
     torch.manual_seed(0)
     # one exact pack (200 rows), then buckets: 7, 1 and 300 rows run on weights packed for 8, 2, 512
-    monkeypatch.setattr(ensemble_module, "_EXACT_PACKS", 1)
+    monkeypatch.setattr(engine_network, "_EXACT_PACKS", 1)
     model = EnsembleWorldModel(6, 2, num_cells=32, depth=3).eval()
     xs = [torch.randn(n, 8) for n in (200, 7, 1, 300)]
     # (bf16 packs only where oneDNN has bf16 convolutions: see the test above)
     for dtype in (None, torch.bfloat16) if onednn_bf16_available() else (None,):
-        model.planning_dtype = dtype
         for path in ("conv", "conv-fused"):
-            model.inference_path = path
+            model.engine.inference_path = path
             with torch.no_grad():
-                packed = [model.network(x)[0] for x in xs]
-                assert model._exact_pack_rows == {200}
-                assert [model._pack_rows(x.shape[0]) for x in xs] == [200, 8, 2, 512]
+                packed = [model.network(x, dtype=dtype)[0] for x in xs]
+                assert model.engine._exact_pack_rows == {200}
+                assert [model.engine._pack_rows(x.shape[0]) for x in xs] == [200, 8, 2, 512]
                 with monkeypatch.context() as m:
-                    m.setattr(ensemble_module, "_PACK_CONV_WEIGHT", None)
-                    plain = [model.network(x)[0] for x in xs]
+                    m.setattr(engine_network, "_PACK_CONV_WEIGHT", None)
+                    plain = [model.network(x, dtype=dtype)[0] for x in xs]
             for a, b in zip(packed, plain):
                 if path == "conv-fused":
                     assert torch.equal(a, b)
                 else:
                     torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
-    model.planning_dtype, model.inference_path = None, "conv-fused"
+    model.engine.inference_path = "conv-fused"
     with torch.no_grad():
         before = model.network(xs[0])[0]
         model.layers[1].weight.mul_(0.5)  # in place, as an optimizer step: the version counter moves
         after = model.network(xs[0])[0]
-    model.inference_path = "bmm"
+    model.engine.inference_path = "bmm"
     with torch.no_grad():
         torch.testing.assert_close(after, model.network(xs[0])[0], rtol=1e-4, atol=1e-5)
     assert not torch.allclose(before, after)
@@ -193,22 +192,22 @@ def test_cached_inference_weights_follow_fused_optimizer_steps_copies_and_moves(
     obs, act = torch.randn(64, 3), torch.randn(64, 2)
     td = TensorDict({"observation": obs, "action": act, ("next", "observation"): obs + 1.0}, [64])
 
+    dtype = torch.bfloat16 if path == "amx-network" else None  # amx-network is bf16 only
+
     def cached_and_fresh(m):
         with torch.no_grad():
-            cached = m.predict_members(obs, act)[0]
-            m.clear_inference_cache()
-            return cached, m.predict_members(obs, act)[0]
+            cached = m.predict_members(obs, act, dtype=dtype)[0]
+            m.engine.clear_inference_cache()
+            return cached, m.predict_members(obs, act, dtype=dtype)[0]
 
     if path == "amx-network" and not amx_network.available():
         pytest.skip(f"the AMX network kernel does not run here: {amx_network.why_not()}")
     if path == "fma-network" and not fma_network.available():
         pytest.skip(f"the FMA network kernel does not run here: {fma_network.why_not()}")
     model = _model().eval()
-    model.inference_path = path
-    if path == "amx-network":  # bf16 only
-        model.planning_dtype = torch.bfloat16
+    model.engine.inference_path = path
     for m in (model, copy.deepcopy(model)):
-        m.inference_path = path
+        m.engine.inference_path = path
         start, _ = cached_and_fresh(m)  # fills the cache
         optimizer = torch.optim.Adam(m.parameters(), lr=1e-2, fused=True)
         for _ in range(3):
@@ -220,7 +219,7 @@ def test_cached_inference_weights_follow_fused_optimizer_steps_copies_and_moves(
         torch.testing.assert_close(cached, fresh, rtol=0, atol=0)
     # storage swapped by .to() (here a round trip through float64): the cache must not serve the old one
     with torch.no_grad():
-        model.predict_members(obs, act)
+        model.predict_members(obs, act, dtype=dtype)
         model.to(torch.float64).to(torch.float32)
         for layer in model.layers:
             layer.weight.data.mul_(0.5)  # through .data: detected only by the storage, not the version
@@ -230,7 +229,7 @@ def test_cached_inference_weights_follow_fused_optimizer_steps_copies_and_moves(
 
 
 def test_auto_precision_is_fp32_where_bf16_is_not_native(monkeypatch):
-    from torchrl_softae.modules import precision
+    from torchrl_softae.modules.engine import precision
 
     monkeypatch.setattr(precision, "fast_bf16_available", lambda: False)
-    assert EnsembleWorldModel(3, 1, num_cells=8, depth=1).auto_planning_dtype() is None
+    assert EnsembleWorldModel(3, 1, num_cells=8, depth=1).engine.auto_planning_dtype() is None

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from torchrl_softae.modules import EnsembleWorldModel
-from torchrl_softae.modules import amx_network, fma_network, moments_kernel, silu_kernel
-from torchrl_softae.modules.rollouts import is_rollout_key
+from torchrl_softae.modules.engine import amx_network, fma_network, moments_kernel, silu_kernel
+from torchrl_softae.modules.engine.rollouts import is_rollout_key
 
 
 def _model(**kw):
@@ -17,13 +17,13 @@ def _model(**kw):
     return EnsembleWorldModel(3, 2, **kw)
 
 
-def _assert_forced_path_matches_bmm(model, path, x, tol):
-    """The model forced onto ``path`` (in its planning dtype) predicts the batched-matmul path's means
-    within ``tol``; leaves the model on ``bmm``."""
-    model.inference_path = path
-    mu = model.network(x)[0]
-    model.inference_path = "bmm"
-    torch.testing.assert_close(mu, model.network(x)[0], rtol=tol, atol=tol)
+def _assert_forced_path_matches_bmm(model, path, x, tol, dtype=None):
+    """The model forced onto ``path`` (hidden layers in ``dtype``) predicts the batched-matmul
+    path's means within ``tol``; leaves the model on ``bmm``."""
+    model.engine.inference_path = path
+    mu = model.network(x, dtype=dtype)[0]
+    model.engine.inference_path = "bmm"
+    torch.testing.assert_close(mu, model.network(x, dtype=dtype)[0], rtol=tol, atol=tol)
 
 
 def _torch_bf16_layers(model, x):
@@ -73,7 +73,6 @@ def test_amx_network_computes_the_bf16_network_on_every_row_count():
     when forced, and refuses it in fp32 with one line naming what it needs."""
     torch.manual_seed(0)
     model = EnsembleWorldModel(7, 3, num_cells=64, depth=3).eval()  # 10 inputs, 14 outputs: padded
-    model.planning_dtype = torch.bfloat16
     threads = torch.get_num_threads()
     try:
         with torch.no_grad():
@@ -81,20 +80,20 @@ def test_amx_network_computes_the_bf16_network_on_every_row_count():
                 torch.set_num_threads(t)
                 x = torch.randn(n, 10)
                 h = _torch_bf16_layers(model, x)
-                out = model._run_path("amx-network", x, torch.bfloat16, None)
+                out = model.engine._run_path("amx-network", x, torch.bfloat16, None)
                 assert out.shape == (5, n, 14) and out.dtype == torch.float32
                 torch.testing.assert_close(out, h, rtol=0.02, atol=0.02)
-                means = model._run_path("amx-network", x, torch.bfloat16, 7)  # the mean head alone
+                means = model.engine._run_path("amx-network", x, torch.bfloat16, 7)  # the mean head alone
                 torch.testing.assert_close(means, out[..., :7], rtol=0, atol=0)
     finally:
         torch.set_num_threads(threads)
     x = torch.randn(40, 10)
     with torch.no_grad():
-        _assert_forced_path_matches_bmm(model, "amx-network", x, tol=0.05)
-        model.inference_path, model.planning_dtype = "amx-network", None
+        _assert_forced_path_matches_bmm(model, "amx-network", x, tol=0.05, dtype=torch.bfloat16)
+        model.engine.inference_path = "amx-network"
         with pytest.raises(RuntimeError, match="'amx-network' runs bf16 with nn.SiLU on an AMX CPU: got torch.float32"):
             model.network(x)
-        _assert_a_copy_runs_its_own_weights(amx_network, model._packed_network("amx-network", torch.bfloat16, None), x)
+        _assert_a_copy_runs_its_own_weights(amx_network, model.engine._packed_network("amx-network", torch.bfloat16, None), x)
     w, b = amx_network.pack_layer(torch.randn(5, 10, 32), torch.randn(5, 32))
     with pytest.raises(ValueError, match=r"layer 0 is \(5, 2, 1, 16, 32\) torch.float32 .* expected pack_layer's"):
         amx_network.PackedNetwork([(w.float(), b)], 10)  # the kernel reads raw addresses: never a wrong layout
@@ -155,12 +154,12 @@ def test_fma_network_computes_the_fp32_network_on_every_row_count_and_instructio
                     fma_network.use_isa(name)
                     for t in (1, 2):
                         torch.set_num_threads(t)
-                        outs.append(model._run_path("fma-network", x, torch.float32, None))
+                        outs.append(model.engine._run_path("fma-network", x, torch.float32, None))
                 assert outs[0].shape == (5, n, 14) and outs[0].dtype == torch.float32
                 torch.testing.assert_close(outs[0].double(), h, rtol=1e-5, atol=1e-5)
                 for out in outs[1:]:
                     torch.testing.assert_close(out, outs[0], rtol=0, atol=0)
-                means = model._run_path("fma-network", x, torch.float32, 7)  # the mean head alone
+                means = model.engine._run_path("fma-network", x, torch.float32, 7)  # the mean head alone
                 torch.testing.assert_close(means, outs[-1][..., :7], rtol=0, atol=0)
     finally:
         torch.set_num_threads(threads)
@@ -168,11 +167,10 @@ def test_fma_network_computes_the_fp32_network_on_every_row_count_and_instructio
     x = torch.randn(40, 10)
     with torch.no_grad():
         _assert_forced_path_matches_bmm(model, "fma-network", x, tol=1e-5)
-        model.inference_path, model.planning_dtype = "fma-network", torch.float16
+        model.engine.inference_path = "fma-network"
         with pytest.raises(RuntimeError, match="'fma-network' runs fp32 .* or bf16 .* got torch.float16"):
-            model.network(x)
-        model.planning_dtype = None
-        _assert_a_copy_runs_its_own_weights(fma_network, model._packed_network("fma-network", torch.float32, None), x)
+            model.network(x, dtype=torch.float16)
+        _assert_a_copy_runs_its_own_weights(fma_network, model.engine._packed_network("fma-network", torch.float32, None), x)
     w, b = fma_network.pack_layer(torch.randn(5, 10, 32), torch.randn(5, 32))
     with pytest.raises(ValueError, match=r"layer 0 is \(5, 1, 10, 32\) torch.bfloat16 .* expected pack_layer's"):
         fma_network.PackedNetwork([(w.bfloat16(), b)], 10)  # the kernel reads raw addresses: never a wrong layout
@@ -191,7 +189,6 @@ def test_fma_network_computes_the_bf16_network_on_every_row_count():
     two; the model takes it in bf16 when forced; where the AMX kernel runs too, both agree."""
     torch.manual_seed(0)
     model = EnsembleWorldModel(6, 3, num_cells=50, depth=3).eval()  # 9 inputs -> 10, hidden 50 -> 64
-    model.planning_dtype = torch.bfloat16
     threads = torch.get_num_threads()
     try:
         with torch.no_grad():
@@ -201,19 +198,19 @@ def test_fma_network_computes_the_bf16_network_on_every_row_count():
                 outs = []
                 for t in (1, 2):
                     torch.set_num_threads(t)
-                    outs.append(model._run_path("fma-network", x, torch.bfloat16, None))
+                    outs.append(model.engine._run_path("fma-network", x, torch.bfloat16, None))
                 assert outs[0].shape == (5, n, 12) and outs[0].dtype == torch.float32
                 torch.testing.assert_close(outs[0], h, rtol=0.02, atol=0.02)
                 torch.testing.assert_close(outs[1], outs[0], rtol=0, atol=0)
                 if amx_network.available():
-                    torch.testing.assert_close(model._run_path("amx-network", x, torch.bfloat16, None), outs[0],
+                    torch.testing.assert_close(model.engine._run_path("amx-network", x, torch.bfloat16, None), outs[0],
                                                rtol=0.02, atol=0.02)
     finally:
         torch.set_num_threads(threads)
     x = torch.randn(40, 9)
     with torch.no_grad():
-        _assert_forced_path_matches_bmm(model, "fma-network", x, tol=0.05)
-        _assert_a_copy_runs_its_own_weights(fma_network, model._packed_network("fma-network", torch.bfloat16, None), x,
+        _assert_forced_path_matches_bmm(model, "fma-network", x, tol=0.05, dtype=torch.bfloat16)
+        _assert_a_copy_runs_its_own_weights(fma_network, model.engine._packed_network("fma-network", torch.bfloat16, None), x,
                                             6)
 
 
@@ -334,18 +331,17 @@ def _fused_moments_match_the_torch_ops(monkeypatch):
         member = torch.randint(5, (6, 70), generator=g)
         with torch.no_grad():
             for dtype in (None, torch.bfloat16):
-                model.planning_dtype = dtype
                 for path in ("conv", "bmm"):
-                    model.inference_path = path
+                    model.engine.inference_path = path
                     for with_ale, idx in ((False, None), (True, member), (False, member)):
-                        model.fused_moments, n_calls = True, len(calls)
-                        fused = model.predict_moments(obs, act, with_ale, idx)
+                        model.engine.fused_moments, n_calls = True, len(calls)
+                        fused = model.predict_moments(obs, act, with_ale, idx, dtype=dtype)
                         assert len(calls) == n_calls + 1  # the kernel ran
+                        again = model.predict_moments(obs, act, with_ale, idx, dtype=dtype)
                         assert torch.equal(torch.stack([t for t in fused if t is not None]),
-                                           torch.stack([t for t in model.predict_moments(obs, act, with_ale, idx)
-                                                        if t is not None]))
-                        model.fused_moments = False
-                        ref = model.predict_moments(obs, act, with_ale, idx)
+                                           torch.stack([t for t in again if t is not None]))
+                        model.engine.fused_moments = False
+                        ref = model.predict_moments(obs, act, with_ale, idx, dtype=dtype)
                         assert len(calls) == n_calls + 2
                         for got, want in zip(fused, ref):
                             assert (got is None) == (want is None)
@@ -353,10 +349,10 @@ def _fused_moments_match_the_torch_ops(monkeypatch):
                                 assert got.shape == (6, 70, 21)
                                 torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
                         mu, sigma = ref[0], ref[1]
-                        members, _ = model.predict_members(obs, act, False)
+                        members, _ = model.predict_members(obs, act, False, dtype=dtype)
                         torch.testing.assert_close(mu, members.mean(0), rtol=1e-5, atol=1e-5)
                         torch.testing.assert_close(sigma, members.std(0), rtol=1e-4, atol=1e-5)
-        model.fused_moments, model.inference_path, model.planning_dtype = True, "auto", None
+        model.engine.fused_moments, model.engine.inference_path = True, "auto"
     raw = torch.randn(5, 8, 6)
     with pytest.raises(ValueError, match=r"member_index outside \[0, 5\)"):
         kernel(raw, torch.zeros(8, 3), torch.zeros(3), torch.ones(3), 3, torch.full((8,), 5), with_logvar=True)
@@ -385,7 +381,7 @@ def _rollout_model(g: torch.Generator):
     model.eval()
     whole = ("amx-network", "fma-network")
     cases = [(dtype, path) for dtype in (None, torch.bfloat16) for path in (*whole, "bmm")
-             if path in model.available_inference_paths(dtype or torch.float32)]
+             if path in model.engine.available_inference_paths(dtype or torch.float32)]
     return model, obs, whole, cases
 
 
@@ -399,37 +395,37 @@ def test_deterministic_rollout_matches_the_torch_ops():
     change rebuilds them."""
     g = torch.Generator().manual_seed(1)
     model, obs, whole, cases = _rollout_model(g)
-    assert ("fma-network" in model.available_inference_paths(torch.float32)) == fma_network.available(torch.float32)
+    assert ("fma-network" in model.engine.available_inference_paths(torch.float32)) == fma_network.available(torch.float32)
     H, M = 4, 37
 
-    def reference(s, acts, eta, model=model):
+    def reference(s, acts, eta, model=model, dtype=None):
         out = []
         for h in range(H):
-            mu, sigma, _, _ = model.predict_moments(s, acts[h])
+            mu, sigma, _, _ = model.predict_moments(s, acts[h], dtype=dtype)
             s = mu if eta is None else torch.addcmul(mu, sigma, eta[h])
             out.append((s, sigma))
         return out
 
-    def rollout(s, acts, eta, model=model):
-        r = model.deterministic_rollout(s, model.normalized_actions(acts), eta)
+    def rollout(s, acts, eta, model=model, dtype=None):
+        r = model.engine.deterministic_rollout(s, model.normalized_actions(acts), eta, dtype=dtype)
         return r, [(nxt.clone(), sigma.clone()) for nxt, sigma in r]
 
     with torch.no_grad():
         for dtype, path in cases:
-            model.planning_dtype, model.inference_path = dtype, path
+            model.engine.inference_path = path
             for with_eta in (False, True):
                 layouts = []
                 for attempt in range(2):
                     s0 = torch.randn(M, 21, generator=g) * 2
                     acts = torch.rand(H, M, 4, generator=g) * 2 - 1
                     eta = 2 * torch.rand(H, M, 21, generator=g) - 1 if with_eta else None
-                    r, got = rollout(s0, acts, eta)
+                    r, got = rollout(s0, acts, eta, dtype=dtype)
                     assert len(r) == H and (r._layout.compiled is not None) == (path in whole)
                     layouts.append(r._layout)
-                    for (s, sigma), (s_ref, sigma_ref) in zip(got, reference(s0, acts, eta)):
+                    for (s, sigma), (s_ref, sigma_ref) in zip(got, reference(s0, acts, eta, dtype=dtype)):
                         assert torch.equal(s, s_ref) and torch.equal(sigma, sigma_ref), (dtype, path, with_eta)
                 assert layouts[0] is layouts[1]  # the same shape: buffers and prepared calls reused
-        model.planning_dtype, model.inference_path = None, whole[1] if fma_network.available() else "bmm"
+        model.engine.inference_path = whole[1] if fma_network.available() else "bmm"
         s0, acts = torch.randn(M, 21, generator=g), torch.rand(H, M, 4, generator=g) * 2 - 1
         before, _ = rollout(s0, acts, None)
         model.layers[0].weight.mul_(1.5)  # its version counter moves: new packed weights, new calls
@@ -452,8 +448,8 @@ def test_deterministic_rollout_matches_the_torch_ops():
         # two rollouts of one shape at a time (nested, threads) each get buffers of their own; the
         # first to finish frees its buffers for the next; a rollout runs once
         s1, acts1 = torch.randn(M, 21, generator=g), torch.rand(H, M, 4, generator=g) * 2 - 1
-        first = model.deterministic_rollout(s0, model.normalized_actions(acts))
-        second = model.deterministic_rollout(s1, model.normalized_actions(acts1))
+        first = model.engine.deterministic_rollout(s0, model.normalized_actions(acts))
+        second = model.engine.deterministic_rollout(s1, model.normalized_actions(acts1))
         assert first._layout is not second._layout
         both = [(a[0].clone(), b[0].clone()) for a, b in zip(first, second)]  # their steps interleaved
         for (got_first, got_second), ref_first, ref_second in zip(both, reference(s0, acts, None),
@@ -461,7 +457,7 @@ def test_deterministic_rollout_matches_the_torch_ops():
             assert torch.equal(got_first, ref_first[0]) and torch.equal(got_second, ref_second[0])
         with pytest.raises(RuntimeError, match="already run"):
             list(first)
-        third = model.deterministic_rollout(s0, model.normalized_actions(acts))
+        third = model.engine.deterministic_rollout(s0, model.normalized_actions(acts))
         assert third._layout in (first._layout, second._layout)
         # rollouts of one shape from two threads at once (the kernels release the GIL): each its
         # own buffers while it runs, the same results as one after another
@@ -491,9 +487,9 @@ def test_deterministic_rollout_matches_the_torch_ops():
         for (s, sigma), (s_ref, sigma_ref) in zip(got, reference(s0, acts, eta, curved)):
             assert torch.equal(s, s_ref) and torch.equal(sigma, sigma_ref)
         with pytest.raises(ValueError, match=r"eta has shape \(4, 37, 20\), expected \(4, 37, 21\)"):
-            model.deterministic_rollout(s0, model.normalized_actions(acts), torch.zeros(H, M, 20))
+            model.engine.deterministic_rollout(s0, model.normalized_actions(acts), torch.zeros(H, M, 20))
         with pytest.raises(ValueError, match=r"observation has shape \(36, 21\), expected \(37, 21\)"):
-            model.deterministic_rollout(s0[1:], model.normalized_actions(acts))
+            model.engine.deterministic_rollout(s0[1:], model.normalized_actions(acts))
 
 
 @pytest.mark.skipif(not moments_kernel.available(), reason="the moments kernel was not built or this CPU lacks AVX2")
@@ -542,58 +538,60 @@ def test_sampled_rollout_matches_the_torch_ops():
     rows and addcmul with the same noise give (the network once for a candidate's particles at the
     first step); the noise is the generator's, one draw per step; a second rollout of the shape
     reuses the layout."""
-    from torchrl_softae.modules import normal_kernel
+    from torchrl_softae.modules.engine import normal_kernel
 
     g = torch.Generator().manual_seed(1)
     model, _, whole, cases = _rollout_model(g)
     H, M, P = 4, 13, 10
 
-    def reference(s, acts, members, seed, with_noise):
+    def reference(s, acts, members, seed, with_noise, dtype=None):
         gen, out = torch.Generator().manual_seed(seed), []
         s, members = s.repeat_interleave(P, 0), members.reshape(-1)
         for h in range(H):
-            _, sigma, picked, ale = model.predict_moments(s, acts[h].repeat_interleave(P, 0), with_noise, members)
+            _, sigma, picked, ale = model.predict_moments(s, acts[h].repeat_interleave(P, 0), with_noise, members,
+                                                          dtype=dtype)
             s = picked if not with_noise else picked + ale * normal_kernel.randn(picked.shape, gen)
             out.append((s, sigma))
         return out
 
     with torch.no_grad():
         for dtype, path in cases:
-            model.planning_dtype, model.inference_path = dtype, path
+            model.engine.inference_path = path
             for with_noise in (False, True):
                 layouts = []
                 for attempt in range(2):
                     s0, acts = torch.randn(M, 21, generator=g) * 2, torch.rand(H, M, 4, generator=g) * 2 - 1
                     members = (torch.arange(P) + torch.randint(5, (M, 1), generator=g)) % 5
-                    r = model.sampled_rollout(s0, model.normalized_actions(acts), members, with_noise,
-                                              torch.Generator().manual_seed(attempt))
+                    r = model.engine.sampled_rollout(s0, model.normalized_actions(acts), members, with_noise,
+                                                     torch.Generator().manual_seed(attempt), dtype=dtype)
                     assert len(r) == H and r.compiled == (path in whole), (dtype, path)
                     assert r.network_calls == [((M, 25), with_noise)] + [((M * P, 25), with_noise)] * (H - 1)
                     layouts.append(r._layout)
                     got = [(nxt.clone(), sigma.clone()) for nxt, sigma in r]
-                    for (s, sigma), (s_ref, sigma_ref) in zip(got, reference(s0, acts, members, attempt, with_noise)):
+                    for (s, sigma), (s_ref, sigma_ref) in zip(got, reference(s0, acts, members, attempt, with_noise,
+                                                                             dtype)):
                         torch.testing.assert_close(s, s_ref)
                         torch.testing.assert_close(sigma, sigma_ref)
                 assert layouts[0] is layouts[1]
         # a copy (deepcopy, pickle) leaves the rollouts' layouts behind (their prepared calls read
         # this model's buffers) and prepares its own, with the same results
-        model.planning_dtype, model.inference_path = None, whole[1] if fma_network.available() else "bmm"
+        model.engine.inference_path = whole[1] if fma_network.available() else "bmm"
         for copy_of in (copy.deepcopy, lambda m: pickle.loads(pickle.dumps(m))):
             twin = copy_of(model)
-            assert any(is_rollout_key(k) for k in model._inference_cache)
-            assert not any(is_rollout_key(k) for k in twin._inference_cache)
+            assert any(is_rollout_key(k) for k in model.engine._inference_cache)
+            assert not any(is_rollout_key(k) for k in twin.engine._inference_cache)
             s0, acts = torch.randn(M, 21, generator=g), torch.rand(H, M, 4, generator=g) * 2 - 1
             members = torch.randint(5, (M, P), generator=g)
             mine, theirs = (
                 [(nxt.clone(), sigma.clone()) for nxt, sigma in
-                 m.sampled_rollout(s0, m.normalized_actions(acts), members, generator=torch.Generator().manual_seed(3))]
+                 m.engine.sampled_rollout(s0, m.normalized_actions(acts), members, generator=torch.Generator().manual_seed(3))]
                 for m in (model, twin))
             for (s, sigma), (s_twin, sigma_twin) in zip(mine, theirs):
                 assert torch.equal(s, s_twin) and torch.equal(sigma, sigma_twin)
         with pytest.raises(ValueError, match=r"member_index is \(12, 10\) torch.int64, expected \(13, P\)"):
-            model.sampled_rollout(s0, model.normalized_actions(acts), members[1:])
+            model.engine.sampled_rollout(s0, model.normalized_actions(acts), members[1:])
         with pytest.raises(ValueError, match=r"member_index outside \[0, 5\)"):
-            model.sampled_rollout(s0, model.normalized_actions(acts), members + 1)
+            model.engine.sampled_rollout(s0, model.normalized_actions(acts), members + 1)
 
 
 @pytest.mark.skipif(not (silu_kernel.available() and moments_kernel.available()),
@@ -606,7 +604,7 @@ def test_compiled_kernels_show_in_torch_profiler_tables():
 
     torch.manual_seed(0)
     model = EnsembleWorldModel(7, 3, num_cells=32, depth=2).eval()
-    model.inference_path = "conv-silu-kernel"
+    model.engine.inference_path = "conv-silu-kernel"
     obs, act = torch.randn(50, 7), torch.rand(50, 3) * 2 - 1
     with torch.no_grad():
         plain = model.predict_moments(obs, act)

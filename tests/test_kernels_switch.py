@@ -28,7 +28,7 @@ def _pair():
 
 def test_a_torch_model_runs_torch_paths_only_and_predicts_what_the_kernels_do():
     auto, plain, x, a = _pair()
-    assert not plain.uses_kernels and set(plain.available_inference_paths()) <= TORCH_PATHS
+    assert not plain.engine.uses_kernels and set(plain.engine.available_inference_paths()) <= TORCH_PATHS
     with torch.no_grad():
         for p, q in zip(auto.predict(x, a), plain.predict(x, a)):
             if p is not None:
@@ -63,11 +63,11 @@ def test_a_bad_kernels_choice_is_one_clear_error():
 
 
 def test_softae_kernels_0_unloads_every_kernel_in_the_process():
-    code = ("from torchrl_softae.modules import amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel\n"
+    code = ("from torchrl_softae.modules.engine import amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel\n"
             "from torchrl_softae.modules import EnsembleWorldModel\n"
             "m = EnsembleWorldModel(6, 2)\n"
             "print([k.available() for k in (amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel)],"
-            " m.uses_kernels, sorted(m.available_inference_paths()))")
+            " m.engine.uses_kernels, sorted(m.engine.available_inference_paths()))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "SOFTAE_KERNELS": "0"}).stdout.strip()
     assert out == "[False, False, False, False, False] False ['bmm', 'conv', 'conv-fused']", out

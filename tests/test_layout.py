@@ -113,6 +113,22 @@ def test_no_import_cycle_in_the_package():
     assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
 
 
+def test_the_model_stands_apart_from_its_engine():
+    """The paper's model is one readable file that imports nothing of the package; the engine
+    imports the model; every model built through ``torchrl_softae.modules`` has an engine."""
+    root = Path(__file__).parents[1] / "torchrl_softae"
+    graph = _import_graph(root)
+    model = "torchrl_softae.modules.ensemble"
+    assert graph[model] == set(), graph[model]
+    assert len((root / "modules" / "ensemble.py").read_text().splitlines()) <= 500
+    engine = {m for m in graph if m.startswith("torchrl_softae.modules.engine.")}
+    assert {"torchrl_softae.modules.engine.network", "torchrl_softae.modules.engine.rollouts"} <= engine
+    assert any(model in graph[m] for m in engine)  # the engine imports the model
+    from torchrl_softae.modules import EnsembleWorldModel, InferenceEngine
+
+    assert isinstance(EnsembleWorldModel(3, 1, num_cells=8, depth=1).engine, InferenceEngine)
+
+
 def test_one_env_list_drives_gymnasium_and_the_catalog():
     import gymnasium as gym
 

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from torchrl_softae.modules import normal_kernel
+from torchrl_softae.modules.engine import normal_kernel
 
 pytestmark = pytest.mark.skipif(not normal_kernel.available(), reason="the normal kernel is not loaded (not built, or SOFTAE_KERNELS=0)")
 
@@ -58,7 +58,7 @@ def test_the_stream_is_seeded_and_the_same_on_every_instruction_set_and_thread_c
     assert torch.equal(g.get_state(), reference.get_state())  # one draw of the generator per call
 
 
-def test_add_scaled_randn_is_x_plus_std_times_the_stream_and_falls_back_elsewhere(monkeypatch):
+def test_add_scaled_randn_is_x_plus_std_times_the_stream_and_falls_back_elsewhere():
     """``x + std * z`` in one pass with ``z`` the same stream :func:`randn` draws from the same
     generator state, ``std`` broadcast; a float64 ``x`` or a non-contiguous one is handled the
     usual way (torch's draws for float64)."""
@@ -74,8 +74,8 @@ def test_add_scaled_randn_is_x_plus_std_times_the_stream_and_falls_back_elsewher
     want = x64 + std.double() * torch.randn(50, 7, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     torch.testing.assert_close(normal_kernel.add_scaled_randn(x64, std.double(), torch.Generator().manual_seed(3)), want)
     assert normal_kernel.randn((4,), torch.Generator().manual_seed(0), dtype=torch.float64).dtype == torch.float64
-    monkeypatch.setattr(normal_kernel, "enabled", False)  # switched off: torch.randn's stream everywhere
-    assert torch.equal(normal_kernel.randn((9,), torch.Generator().manual_seed(1)),
+    # kernel=False (a model built with kernels="torch", or engine.kernel_noise off): torch.randn's stream
+    assert torch.equal(normal_kernel.normal_(torch.empty(9), torch.Generator().manual_seed(1), kernel=False),
                        torch.randn(9, generator=torch.Generator().manual_seed(1)))
-    torch.testing.assert_close(normal_kernel.add_scaled_randn(x, std, torch.Generator().manual_seed(1)),
+    torch.testing.assert_close(normal_kernel.add_scaled_randn(x, std, torch.Generator().manual_seed(1), kernel=False),
                                x + std * torch.randn(50, 7, generator=torch.Generator().manual_seed(1)))

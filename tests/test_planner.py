@@ -10,7 +10,7 @@ from _envs import PointMassEnv
 from torchrl_softae.envs import EnsembleModelEnv, HallucinatedControl, UncertaintyReward
 from torchrl_softae.modules.planners import rollout_returns
 from torchrl_softae.modules import EnsembleWorldModel, ICEMPlanner, MPPIPlanner, colored_noise, resolve_planning_dtype
-from torchrl_softae.modules.paths import INFERENCE_PATHS
+from torchrl_softae.modules.engine.paths import INFERENCE_PATHS
 
 
 def test_colored_noise_unit_variance_and_correlation():
@@ -145,7 +145,7 @@ def test_bf16_ranking_matches_fp32(path):
     a = torch.rand(400, 2) * 2 - 1
     td = TensorDict({"observation": x, "action": a, ("next", "observation"): x + 0.3 * torch.sin(3 * a[:, :1] + x)}, [400])
     EnsembleTrainer(EnsembleLoss(tenv.base_env.world_model), lr=3e-3, epochs=20).fit(td)
-    if path not in tenv.base_env.world_model.available_inference_paths(torch.bfloat16):
+    if path not in tenv.base_env.world_model.engine.available_inference_paths(torch.bfloat16):
         pytest.skip(f"{path} does not run in bf16 here (its kernel not built or not supported by this CPU, or "
                     "conv-fused without oneDNN's bf16 convolution: test_ensemble checks the error)")
     model = tenv.base_env.world_model
@@ -155,11 +155,11 @@ def test_bf16_ranking_matches_fp32(path):
     acts = torch.rand(1, 300, 5, 5) * 2 - 1
     # every kernel path keeps the ranking (the fp32 reference on the same path where it runs in fp32;
     # amx-network is bf16 only, fma-network runs both)
-    model.inference_path = path if path in model.available_inference_paths(torch.float32) else "auto"
+    model.engine.inference_path = path if path in model.engine.available_inference_paths(torch.float32) else "auto"
     r32 = fp32.evaluate(obs, acts)
-    model.inference_path = path
+    model.engine.inference_path = path
     r16 = bf16.evaluate(obs, acts)
-    assert tenv.base_env.world_model.planning_dtype is None  # the env restored its own model
+    assert tenv.base_env._plan_dtype is None  # the precision lived for one plan only, on the env, never on the model
     assert not torch.equal(r32, r16)  # the reduced-precision path really ran
     rho = spearmanr(r32[0].numpy(), r16[0].numpy()).statistic
     assert rho >= 0.95, rho
@@ -328,7 +328,7 @@ def test_tensor_loop_matches_the_torchrl_stack():
         acts = (torch.rand(2, 5, 1, 4, d) * 2 - 1).expand(2, 5, particles, 4, d)
         member = torch.arange(particles).expand(2, 5, particles) % 5 if particles > 1 else None
         # the per-step loop first: every network call goes through network_output
-        base.deterministic_rollouts = base.sampled_rollouts = False
+        base.world_model.engine.rollouts = False
         rows, network = [], base.world_model.network_output
         base.world_model.network_output = lambda x, *a, **k: (rows.append(x.shape[0]), network(x, *a, **k))[1]
         base.set_seed(0)
@@ -338,7 +338,7 @@ def test_tensor_loop_matches_the_torchrl_stack():
         slow = base._returns_through_step(tenv, obs, acts, member)
         del base.world_model.network_output
         torch.testing.assert_close(fast, slow)
-        base.deterministic_rollouts = base.sampled_rollouts = True
+        base.world_model.engine.rollouts = True
         # the rollouts (deterministic with one particle, trajectory sampling with several), as
         # prepared kernel calls on a whole-network path and as torch ops elsewhere: the same returns
         # as stepping, noise draws included
@@ -351,18 +351,18 @@ def test_tensor_loop_matches_the_torchrl_stack():
                                    slow)
         for path in ("amx-network", "fma-network", "bmm"):
             for precision in ("fp32", "bf16"):
-                if path not in base.world_model.available_inference_paths(resolve_planning_dtype(precision) or torch.float32):
+                if path not in base.world_model.engine.available_inference_paths(resolve_planning_dtype(precision) or torch.float32):
                     continue
-                base.world_model.inference_path = path
+                base.world_model.engine.inference_path = path
                 with base._planning(precision), torch.no_grad():
                     base.set_seed(0)
                     fast = base._returns_on_tensors(base._tensor_stack(tenv), obs, acts[:, :, 0], member)
-                    compiled = [v.compiled is not None for k, v in base.world_model._inference_cache.items()
+                    compiled = [v.compiled is not None for k, v in base.world_model.engine._inference_cache.items()
                                 if k[0] == kind and path in (k[-4] or ())]  # k[-4]: the kernel paths
                     assert path == "bmm" or (compiled and all(compiled))
                     base.set_seed(0)
                     slow = base._returns_through_step(tenv, obs, acts, member)
-                base.world_model.inference_path = "auto"
+                base.world_model.engine.inference_path = "auto"
                 torch.testing.assert_close(fast, slow)
     scaled = TransformedEnv(_model_env("mean"), Compose(UncertaintyReward(), RewardScaling(0.0, 2.0)))
     assert scaled.base_env._tensor_stack(scaled) is None

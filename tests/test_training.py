@@ -97,7 +97,7 @@ def test_the_loss_under_bf16_autocast_is_fp32_and_close_to_fp32s():
 
 
 def test_auto_is_fp32_without_native_bf16_and_a_measured_choice_with_it(tmp_path, monkeypatch):
-    from torchrl_softae.modules import paths, precision
+    from torchrl_softae.modules.engine import paths, precision
 
     monkeypatch.setenv("TORCHRL_SOFTAE_CACHE", str(tmp_path))
     monkeypatch.setattr(paths, "_MEMORY", {})

@@ -52,7 +52,7 @@ def child(group: str, setting: str, plans: int, threads: int, d_s: int, d_a: int
         ICEM_ROWS, I, K, N, P, contender_precision, icem_contender, icem_settings, make_model, pets_env, softae_env,
         timed_precisions, use_allocator)
 
-    from torchrl_softae.modules.precision import resolve_planning_dtype
+    from torchrl_softae.modules.engine.precision import resolve_planning_dtype
 
     allocator = use_allocator(setting)
     precisions = timed_precisions()  # bf16 only where it is native
@@ -69,11 +69,7 @@ def child(group: str, setting: str, plans: int, threads: int, d_s: int, d_a: int
 
         def batch_call(dtype):
             def fn(_obs):
-                model.planning_dtype = dtype
-                try:
-                    model.network_output(batch)
-                finally:
-                    model.planning_dtype = None
+                model.network_output(batch, dtype=dtype)
             return fn
 
         jobs = {f"network-8-plans-{name}": batch_call(resolve_planning_dtype(name)) for name in precisions}

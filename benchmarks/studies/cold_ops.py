@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).parents[1]))
 from planning_speed import cpu_description, cpu_kind, make_model  # noqa: E402
 
 from torchrl_softae.allocator import keep_freed_memory  # noqa: E402
-from torchrl_softae.modules import moments_kernel  # noqa: E402
+from torchrl_softae.modules.engine import moments_kernel  # noqa: E402
 
 
 def main() -> None:
@@ -51,8 +51,7 @@ def main() -> None:
 
     def network(dtype):
         def call():
-            model.planning_dtype = dtype
-            model.network_output(x, with_logvar=False)
+            model.network_output(x, with_logvar=False, dtype=dtype)
         return call
 
     predecessors = {"nothing (the op in a loop)": lambda: None,
@@ -87,7 +86,6 @@ def main() -> None:
                         op()
                         t.append(time.perf_counter() - s)
                     times[(op_name, pre_name)].append(statistics.median(t))
-    model.planning_dtype = None
     rows_out = [{"op": op, "after": pre, "median_us": 1e6 * statistics.median(times[(op, pre)]),
                  "rounds_us": [1e6 * v for v in times[(op, pre)]]} for op in ops for pre in predecessors]
     names = list(predecessors)

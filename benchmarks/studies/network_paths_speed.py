@@ -30,8 +30,8 @@ from planning_speed import (  # noqa: E402
     KEPT, N, P, allocator_option, best_peaks, cpu_description, cpu_kind, flops_per_row, make_model, peaks,
     timed_precisions, use_allocator)
 
-from torchrl_softae.modules import fma_network  # noqa: E402
-from torchrl_softae.modules.precision import resolve_planning_dtype  # noqa: E402
+from torchrl_softae.modules.engine import fma_network  # noqa: E402
+from torchrl_softae.modules.engine.precision import resolve_planning_dtype  # noqa: E402
 
 #: (label, rows, with the log-variance head): what one- and ten-particle planning call
 CALLS = (("1 particle", P + KEPT, False), ("10 particles", (P + KEPT) * N, True))
@@ -64,12 +64,11 @@ def main() -> int:
         x = torch.randn(rows, 70, generator=torch.Generator().manual_seed(0))
         for name in precisions:
             dtype = resolve_planning_dtype(name) or torch.float32
-            for path in model.available_inference_paths(dtype):
+            for path in model.engine.available_inference_paths(dtype):
                 def call(path=path, dtype=dtype, x=x, with_logvar=with_logvar):
-                    model.planning_dtype = None if dtype == torch.float32 else dtype
-                    model.inference_path = path
+                    model.engine.inference_path = path
                     for _ in range(args.calls):
-                        model.network_output(x, with_logvar)
+                        model.network_output(x, with_logvar, dtype)
                 jobs[(label, name, path)] = call
     times = {key: [] for key in jobs}
     pk = {}
@@ -82,7 +81,7 @@ def main() -> int:
                 t = time.perf_counter()
                 fn()
                 times[key].append((time.perf_counter() - t) / args.calls)
-    model.inference_path = "auto"
+    model.engine.inference_path = "auto"
     best = best_peaks(pk)
     print(f"GEMM peaks (2048^3, best of every round) [GFLOP/s]: "
           + ", ".join(f"{k} {v:.0f}" for k, v in sorted(pk.items())))

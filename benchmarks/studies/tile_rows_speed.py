@@ -32,8 +32,8 @@ from planning_speed import (  # noqa: E402
     allocator_option, best_peaks, cpu_description, cpu_kind, flops_per_row, make_model, peaks, timed_precisions,
     use_allocator)
 
-from torchrl_softae.modules import paths  # noqa: E402
-from torchrl_softae.modules.precision import resolve_planning_dtype  # noqa: E402
+from torchrl_softae.modules.engine import paths  # noqa: E402
+from torchrl_softae.modules.engine.precision import resolve_planning_dtype  # noqa: E402
 
 #: (label, rows, with the log-variance head): what planning and batched evaluation call
 CALLS = (("1 ten-particle plan step", 2060, True), ("8 one-particle plans as one batch", 1648, False),
@@ -42,10 +42,10 @@ CALLS = (("1 ten-particle plan step", 2060, True), ("8 one-particle plans as one
 PASSES = ("one pass", 512, 1024, 2048)
 
 
-def in_passes(model, x: torch.Tensor, with_logvar: bool, rows: int) -> torch.Tensor:
+def in_passes(model, x: torch.Tensor, with_logvar: bool, rows: int, dtype=None) -> torch.Tensor:
     """``model.network_output(x)`` in passes of at most ``rows`` rows, into one ``(L, N, out)``
     buffer (as the conv path lays it out: a view of ``(N, L, out)``)."""
-    parts = [model.network_output(chunk, with_logvar) for chunk in x.tensor_split(-(-x.shape[0] // rows))]
+    parts = [model.network_output(chunk, with_logvar, dtype) for chunk in x.tensor_split(-(-x.shape[0] // rows))]
     out = torch.empty(x.shape[0], parts[0].shape[0], parts[0].shape[-1], dtype=parts[0].dtype).transpose(0, 1)
     start = 0
     for part in parts:
@@ -80,11 +80,10 @@ def main() -> int:
         for name in precisions:
             for passes in PASSES:
                 def call(x=x, with_logvar=with_logvar, dtype=resolve_planning_dtype(name), passes=passes):
-                    model.planning_dtype = dtype
                     if passes == "one pass":
-                        model.network_output(x, with_logvar)
+                        model.network_output(x, with_logvar, dtype)
                     else:
-                        in_passes(model, x, with_logvar, passes)
+                        in_passes(model, x, with_logvar, passes, dtype)
                 jobs[(label, name, passes)] = call
     rows_of = {label: rows for label, rows, _ in CALLS}
     times = {key: [] for key in jobs}

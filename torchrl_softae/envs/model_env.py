@@ -9,10 +9,10 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, ModelBasedEnvBase, TransformedEnv
 
-from torchrl_softae.modules import normal_kernel as _normal_kernel
+from torchrl_softae.modules.engine import normal_kernel as _normal_kernel
 from torchrl_softae.modules.planners.contract import ActionSequenceEvaluator, PlanningTransform
-from torchrl_softae.modules.ensemble import EnsembleWorldModel, ensemble_std
-from torchrl_softae.modules.precision import resolve_planning_dtype
+from torchrl_softae.modules.ensemble import EnsembleWorldModel, ensemble_moments
+from torchrl_softae.modules.engine.precision import resolve_planning_dtype
 
 __all__ = ["EnsembleModelEnv", "PROPAGATION_MODES"]
 
@@ -76,15 +76,6 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     member_key = "member_index"
 
     #: score deterministic one-particle plans (Mean-AE, SoftAE) through the model's
-    #: :meth:`~torchrl_softae.modules.EnsembleWorldModel.deterministic_rollout` (every step's network
-    #: input laid out at once, prepared kernel calls where they run); ``False``: the per-step tensor
-    #: loop that every other propagation runs (the same values; to compare)
-    deterministic_rollouts: bool = True
-    #: trajectory sampling with particles (``mode="sample"``) scored through
-    #: :meth:`~torchrl_softae.modules.EnsembleWorldModel.sampled_rollout` (laid out once, the
-    #: noise drawn before the first step, prepared kernel calls where they run); ``False``: the
-    #: per-step tensor loop (the same values; to compare)
-    sampled_rollouts: bool = True
 
     def __init__(
         self,
@@ -131,6 +122,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         self.initial_states = (None if initial_states is None
                                else initial_states.detach().reshape(-1, d_s).to(dev).clone())
         self._check_actions = True
+        self._plan_dtype: torch.dtype | None = None  # the hidden layers' dtype while a plan is scored
         self._propagate = {"mean": self._propagate_mean, "sample": self._propagate_sample,
                            "optimistic": self._propagate_optimistic}[mode]
 
@@ -191,12 +183,11 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         model = self.world_model
         if particles == 1:
             return model.predict_moments(observation, model_action, self.aleatoric_noise, member_index,
-                                         action_normalized=True)
+                                         action_normalized=True, dtype=self._plan_dtype)
         # shared rows: every member's mean, then each particle's member picked from them
         members, ale = model.predict_members(observation, model_action, with_aleatoric=self.aleatoric_noise,
-                                             action_normalized=True)
-        mu = members.mean(0)
-        sigma = ensemble_std(members, mu)
+                                             action_normalized=True, dtype=self._plan_dtype)
+        mu, sigma = ensemble_moments(members)
         shape = (*mu.shape[:-2], particles, mu.shape[-1])
         mu, sigma = mu.expand(shape), sigma.expand(shape)
         member_mean = None
@@ -212,8 +203,10 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     def _with_noise(self, nxt, noise_std):
         if noise_std is None:
             return nxt
-        # the counter-based draws where they apply (normal_kernel.enabled, the model's kernels), else torch.randn's
-        return _normal_kernel.add_scaled_randn(nxt, noise_std, self._generator, kernel=self.world_model.uses_kernels)
+        # the counter-based draws where they apply (the model's kernels), else torch.randn's
+        engine = self.world_model.engine
+        return _normal_kernel.add_scaled_randn(nxt, noise_std, self._generator,
+                                               kernel=engine.uses_kernels and engine.kernel_noise)
 
     def _propagate_mean(self, observation, action, eta, member_index, particles=1):
         mu, sigma, _, ale = self._moments(observation, action, particles=particles)
@@ -229,7 +222,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     def _propagate_optimistic(self, observation, action, eta, member_index, particles=1):
         self._check_eta(eta, observation.shape)
         mu, sigma, _, ale = self._moments(observation, action, particles=particles)
-        return self._with_noise(torch.addcmul(mu, sigma, eta), ale), sigma
+        return self._with_noise(self.world_model.optimistic_step(mu, sigma, eta), ale), sigma
 
     def _propagate_sample(self, observation, action, eta, member_index, particles=1):
         if member_index is None:
@@ -285,17 +278,21 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
 
     @contextlib.contextmanager
     def _planning(self, precision: str):
-        """The model's hidden layers in ``precision``; per-step action checks off (the sequences
-        were checked once, as a whole)."""
-        model = self.world_model
-        prev_dtype, prev_check = model.planning_dtype, self._check_actions
+        """The model's hidden layers in ``precision`` for this env's model calls (an argument of
+        each call, not state on the shared model); per-step action checks off (the sequences were
+        checked once, as a whole)."""
+        engine = self.world_model.engine
+        prev_dtype, prev_check = self._plan_dtype, self._check_actions
         # "auto": bf16 only where it measures faster for this ensemble on this machine
-        model.planning_dtype = model.auto_planning_dtype() if precision == "auto" else resolve_planning_dtype(precision)
+        if precision == "auto":
+            self._plan_dtype = engine.auto_planning_dtype() if engine is not None else None
+        else:
+            self._plan_dtype = resolve_planning_dtype(precision)
         self._check_actions = False
         try:
             yield
         finally:
-            model.planning_dtype, self._check_actions = prev_dtype, prev_check
+            self._plan_dtype, self._check_actions = prev_dtype, prev_check
 
     @torch.no_grad()
     def evaluate_action_sequences(
@@ -377,9 +374,9 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             entries = t.plan_action(entries)
         entries = {k: v.movedim(-2, 0).unsqueeze(-2).contiguous() for k, v in entries.items()}
         model_actions = self.world_model.normalized_actions(entries["action"])
-        if self.deterministic and P == 1 and self.deterministic_rollouts:
+        if self.deterministic and P == 1 and self.world_model.engine.rollouts:
             return self._deterministic_returns(stack, obs, entries, model_actions)
-        if self.mode == "sample" and member is not None and self.sampled_rollouts:
+        if self.mode == "sample" and member is not None and self.world_model.engine.rollouts:
             return self._sampled_returns(stack, obs, entries, model_actions, member)
         ret = torch.zeros(B, N, P, 1, device=obs.device)
         for h in range(H):
@@ -401,7 +398,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     def _deterministic_returns(self, stack, obs, entries, model_actions) -> torch.Tensor:
         """:meth:`_returns_on_tensors` with deterministic propagation and one particle per candidate
         (``obs`` ``(B, N, 1, d_s)``; ``entries`` and ``model_actions`` step-major, ``(H, B, N, 1,
-        k)``): the model's steps laid out once (:meth:`EnsembleWorldModel.deterministic_rollout`),
+        k)``): the model's steps laid out once (:meth:`torchrl_softae.modules.engine.InferenceEngine.deterministic_rollout`),
         on flat ``(B * N, k)`` rows; the rewards of all steps at once (:meth:`_rollout_returns`)."""
         B, N, _, d_s = obs.shape
         H = model_actions.shape[0]
@@ -410,22 +407,22 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             eta = entries.get("eta")
             self._check_eta(eta, (H, *obs.shape))
             eta = eta.reshape(H, B * N, d_s)
-        rollout = self.world_model.deterministic_rollout(obs.reshape(B * N, d_s), model_actions.reshape(H, B * N, -1),
-                                                         eta)
+        rollout = self.world_model.engine.deterministic_rollout(
+            obs.reshape(B * N, d_s), model_actions.reshape(H, B * N, -1), eta, dtype=self._plan_dtype)
         return self._rollout_returns(stack, rollout, entries["action"], (B, N, 1))
 
     def _sampled_returns(self, stack, obs, entries, model_actions, member) -> torch.Tensor:
         """:meth:`_returns_on_tensors` with trajectory sampling, each particle following its member
         (``obs`` ``(B, N, P, d_s)``, ``member`` ``(B, N, P)``; ``entries`` and ``model_actions``
         step-major, ``(H, B, N, 1, k)``): the model's steps laid out once
-        (:meth:`EnsembleWorldModel.sampled_rollout`, the network once for a candidate's particles
+        (:meth:`torchrl_softae.modules.engine.InferenceEngine.sampled_rollout`, the network once for a candidate's particles
         at the first step), the noise drawn from this env's generator as stepping draws it; the
         rewards of all steps at once (:meth:`_rollout_returns`)."""
         B, N, P, d_s = obs.shape
         H = model_actions.shape[0]
-        rollout = self.world_model.sampled_rollout(
+        rollout = self.world_model.engine.sampled_rollout(
             obs[:, :, 0].reshape(B * N, d_s), model_actions.reshape(H, B * N, -1), member.reshape(B * N, P),
-            self.aleatoric_noise, self._generator)
+            self.aleatoric_noise, self._generator, dtype=self._plan_dtype)
         action = entries["action"]
         return self._rollout_returns(stack, rollout, action.expand(H, B, N, P, action.shape[-1]), (B, N, P))
 

@@ -87,13 +87,13 @@ def resolve_training_dtype(precision: str, model, batch_size: int = 64) -> torch
     ``"auto"`` is bf16 only where the device has native bf16 units (:func:`.fast_bf16_available`
     on a CPU; ``torch.cuda.is_bf16_supported`` on CUDA) *and* a bf16 gradient step of this model's
     shapes measures faster than an fp32 one (timed once per machine, shapes and threads, cached on
-    disk as planning's choices are: :func:`torchrl_softae.modules.paths.choose`); else fp32."""
+    disk as planning's choices are: :func:`torchrl_softae.modules.engine.paths.choose`); else fp32."""
     if precision not in TRAINING_PRECISIONS:
         raise ValueError(f"precision={precision!r}, expected one of {', '.join(TRAINING_PRECISIONS)}")
     if precision != "auto":
         return torch.bfloat16 if precision == "bf16" else torch.float32
-    from torchrl_softae.modules import paths
-    from torchrl_softae.modules.precision import fast_bf16_available
+    from torchrl_softae.modules.engine import paths
+    from torchrl_softae.modules.engine.precision import fast_bf16_available
 
     device = model.input_normalizer.loc.device
     native = torch.cuda.is_bf16_supported() if device.type == "cuda" else device.type == "cpu" and fast_bf16_available()

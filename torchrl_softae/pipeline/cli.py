@@ -63,7 +63,7 @@ def cmd_explore(args) -> int:
 
 
 def _engine(precision: str, threads: int) -> str:
-    from torchrl_softae.modules.precision import fast_bf16_available, resolve_planning_dtype
+    from torchrl_softae.modules.engine.precision import fast_bf16_available, resolve_planning_dtype
 
     dtype = resolve_planning_dtype(precision)
     line = f"planning in {'bf16' if dtype is not None else 'fp32'} (precision={precision}) on the CPU, {threads} torch threads"

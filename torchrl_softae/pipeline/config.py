@@ -20,7 +20,7 @@ __all__ = [
     "flat_config",
 ]
 
-from torchrl_softae.modules.kernels import KERNEL_CHOICES
+from torchrl_softae.modules.engine.kernels import KERNEL_CHOICES
 from torchrl_softae.modules.planners.contract import PLANNING_PRECISIONS
 from torchrl_softae.objectives.training import TRAINING_PRECISIONS
 from torchrl_softae.envs.transforms.hallucinated_control import DEFAULT_BETA

@@ -92,8 +92,8 @@ def machine() -> dict:
     its threads, and which compiled kernels this process loaded."""
     import torch
 
-    from torchrl_softae.modules import amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel
-    from torchrl_softae.modules.precision import cpu_info, cpu_name, flags_of
+    from torchrl_softae.modules.engine import amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel
+    from torchrl_softae.modules.engine.precision import cpu_info, cpu_name, flags_of
 
     info = cpu_info()
     flags = flags_of(info)

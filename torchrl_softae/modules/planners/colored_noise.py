@@ -19,7 +19,7 @@ import math
 
 import torch
 
-from torchrl_softae.modules import normal_kernel
+from torchrl_softae.modules.engine import normal_kernel
 
 __all__ = ["colored_noise", "MAX_BASIS_T"]
 
@@ -92,7 +92,7 @@ def colored_noise(
         exponent (float): spectral exponent beta >= 0.
         shape: output shape ``(..., T)``; every leading index is an independent series.
         generator: torch generator for reproducibility (on ``device``); fp32 draws on the CPU
-            come from :mod:`~torchrl_softae.modules.normal_kernel`, seeded from it.
+            come from :mod:`~torchrl_softae.modules.engine.normal_kernel`, seeded from it.
         device: where the noise is created; default the generator's device (CPU without one).
 
     Returns:

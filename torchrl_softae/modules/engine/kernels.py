@@ -1,4 +1,4 @@
-"""The one switch between our compiled kernels (``torchrl_softae/csrc``) and pure torch.
+"""The one switch between our compiled kernels (``torchrl_softae/modules/engine/csrc``) and pure torch.
 
 ``kernels="auto"`` (the default where a model is built) runs a kernel wherever it is built, applies
 and measured faster; ``kernels="torch"`` never runs one for that model. The environment variable
@@ -11,9 +11,10 @@ import importlib
 import os
 from types import ModuleType
 
+from torchrl_softae.modules.ensemble import KERNEL_CHOICES  # the model's kernels= choices
+
 __all__ = ["KERNEL_CHOICES", "ENABLED", "kernels_allowed", "load_extension"]
 
-KERNEL_CHOICES = ("auto", "torch")
 #: ``False`` while ``SOFTAE_KERNELS=0``: no compiled kernel runs in this process
 ENABLED: bool = os.environ.get("SOFTAE_KERNELS", "1") != "0"
 
@@ -26,13 +27,13 @@ def kernels_allowed(choice: str = "auto") -> bool:
 
 
 def load_extension(name: str) -> ModuleType | None:
-    """The compiled extension ``torchrl_softae.modules.NAME``, or ``None`` where it was not built
+    """The compiled extension ``torchrl_softae.modules.engine.NAME``, or ``None`` where it was not built
     or ``SOFTAE_KERNELS=0``: its wrapper then takes the torch path, as in an install without a C
     compiler. Import torch first: the extension's libgomp.so.1 then resolves to torch's, one
     OpenMP thread pool."""
     if not ENABLED:
         return None
     try:
-        return importlib.import_module(f"torchrl_softae.modules.{name}")
+        return importlib.import_module(f"torchrl_softae.modules.engine.{name}")
     except ImportError:
         return None

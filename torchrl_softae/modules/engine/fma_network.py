@@ -1,5 +1,5 @@
 """The ensemble's whole network in one call of fused multiply-adds
-(``torchrl_softae/csrc/fma_network.c``), fp32 or bf16.
+(``torchrl_softae/modules/engine/csrc/fma_network.c``), fp32 or bf16.
 
 Every member's block of up to 12 rows (AVX-512; 6 with AVX2) runs through all layers in register
 blocks, each hidden layer's bias and SiLU applied in registers, the last layer written out in
@@ -8,15 +8,15 @@ where the CPU has AVX-512F or AVX2 with FMA (:func:`isa`); bf16 (weights and hid
 fp32 accumulation, VDPBF16PS) where it has AVX512-BF16. Built at install time where a C compiler
 is present (an optional extension). The ensemble offers it as the inference path ``fma-network``
 (SiLU; :func:`available` in the planning dtype) and takes it only where it measures faster
-(:mod:`~torchrl_softae.modules.paths`).
+(:mod:`~torchrl_softae.modules.engine.paths`).
 """
 from __future__ import annotations
 
 import torch
 
-from torchrl_softae.modules._fused_network import PackedLayer, PackedNetworkBase, prepare, run
-from torchrl_softae.modules._instruction_sets import instruction_set_functions
-from torchrl_softae.modules.kernels import load_extension
+from torchrl_softae.modules.engine._fused_network import PackedLayer, PackedNetworkBase, prepare, run
+from torchrl_softae.modules.engine._instruction_sets import instruction_set_functions
+from torchrl_softae.modules.engine.kernels import load_extension
 
 _fma_network = load_extension("_fma_network")  # after torch (None: not built, or SOFTAE_KERNELS=0)
 
@@ -47,7 +47,7 @@ RUNS = "fp32 (AVX-512F or AVX2+FMA) or bf16 (AVX512-BF16) with nn.SiLU"
 def why_not(dtype: torch.dtype = torch.float32) -> str | None:
     """Why :func:`available` is ``False`` (``None`` where it is ``True``)."""
     if _fma_network is None:
-        return "the extension torchrl_softae.modules._fma_network was not built (no C compiler)"
+        return "the extension torchrl_softae.modules.engine._fma_network was not built (no C compiler)"
     if isa() is None:
         return "the CPU has neither AVX-512F nor AVX2 with FMA"
     if dtype not in DTYPES:

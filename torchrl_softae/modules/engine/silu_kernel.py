@@ -1,18 +1,18 @@
-"""The compiled in-place SiLU (``torchrl_softae/csrc/silu.c``) for the ensemble's inference layers.
+"""The compiled in-place SiLU (``torchrl_softae/modules/engine/csrc/silu.c``) for the ensemble's inference layers.
 
 Built at install time where a C compiler is present (an optional extension: without it
 :func:`available` is ``False`` and the ensemble uses torch's SiLU). The ensemble runs it only on
 an inference path that measured faster with it (``conv-silu-kernel``, ``bmm-silu-kernel`` in
-:data:`~torchrl_softae.modules.paths.INFERENCE_PATHS`).
+:data:`~torchrl_softae.modules.engine.paths.INFERENCE_PATHS`).
 """
 from __future__ import annotations
 
 import torch
 from torch.nn import functional as F
 
-from torchrl_softae.modules._instruction_sets import instruction_set_functions
-from torchrl_softae.modules._profiling import seen_by_profiler
-from torchrl_softae.modules.kernels import load_extension
+from torchrl_softae.modules.engine._instruction_sets import instruction_set_functions
+from torchrl_softae.modules.engine._profiling import seen_by_profiler
+from torchrl_softae.modules.engine.kernels import load_extension
 
 _silu = load_extension("_silu")  # after torch (None: not built, or SOFTAE_KERNELS=0)
 

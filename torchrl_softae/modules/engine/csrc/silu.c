@@ -17,7 +17,7 @@
  *
  * Built at install time as the optional extension torchrl_softae.modules._silu (pyproject.toml);
  * where it does not build, or where it is not faster, the ensemble uses torch's SiLU: the inference
- * path is measured, never assumed (torchrl_softae/modules/paths.py). The instruction set is chosen
+ * path is measured, never assumed (torchrl_softae/modules/engine/paths.py). The instruction set is chosen
  * at run time (AVX512-BF16, AVX-512F, AVX2 with FMA, else portable C), so one build runs on every
  * x86-64 CPU.
  * OpenMP threads: the extension links libgomp.so.1, and imported after torch it shares torch's
@@ -258,7 +258,7 @@ static PyMethodDef METHODS[] = {
 static struct PyModuleDef MODULE = {PyModuleDef_HEAD_INIT, "_silu", "SiLU in place (fp32, bf16)", -1, METHODS, NULL, NULL, NULL, NULL};
 
 /* what the kernel computes and how fast: part of the key of inference-path choices cached on disk
- * (torchrl_softae/modules/paths.py), so a choice measured with an older kernel is measured again.
+ * (torchrl_softae/modules/engine/paths.py), so a choice measured with an older kernel is measured again.
  * 2: the bias row, the bf16 form with a 14-bit reciprocal. */
 #define SOFTAE_SILU_REVISION 2
 

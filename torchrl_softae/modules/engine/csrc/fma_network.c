@@ -17,7 +17,7 @@
  * (ROWS x 256, 12 KiB in fp32) stay in L1, the member's weights (about 1 MiB in fp32) stream from
  * L2, each weight vector loaded once per block of rows, and there is one OpenMP fork per call.
  *
- * Layout (the Python side packs it, torchrl_softae/modules/fma_network.py):
+ * Layout (the Python side packs it, torchrl_softae/modules/engine/fma_network.py):
  *   x      (N, d_in) fp32, row-major: the normalized input every member shares;
  *   weight fp32: (L, Mp / 32, K, 32) per layer, panel p holding W[k][32 p + j];
  *          bf16: (L, Mp / 32, K / 2, 32, 2) per layer, panel p holding W[2 i + t][32 p + j] at
@@ -31,7 +31,7 @@
  * Built at install time as the optional extension torchrl_softae.modules._fma_network
  * (pyproject.toml); the instruction set is chosen at run time (fp32: AVX-512F, else AVX2 with FMA;
  * bf16: AVX512-BF16; on a CPU without them that form is not offered). Like every inference path it
- * is a candidate the ensemble measures, never assumed faster (torchrl_softae/modules/paths.py).
+ * is a candidate the ensemble measures, never assumed faster (torchrl_softae/modules/engine/paths.py).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -381,7 +381,7 @@ static struct PyModuleDef MODULE = {PyModuleDef_HEAD_INIT, "_fma_network",
                                     "the ensemble's network by fp32 FMA register blocks", -1, METHODS, NULL, NULL, NULL,
                                     NULL};
 
-/* part of the key of inference-path choices cached on disk (torchrl_softae/modules/paths.py) */
+/* part of the key of inference-path choices cached on disk (torchrl_softae/modules/engine/paths.py) */
 #define SOFTAE_FMA_NETWORK_REVISION 2 /* 2: the bf16 form */
 
 PyMODINIT_FUNC PyInit__fma_network(void) {

@@ -1,4 +1,4 @@
-"""The compiled one-pass ensemble moments (``torchrl_softae/csrc/moments.c``) for planning.
+"""The compiled one-pass ensemble moments (``torchrl_softae/modules/engine/csrc/moments.c``) for planning.
 
 From the ensemble's raw output (normalized member deltas, in the planner's dtype, read where they
 lie in the network's output buffer) it computes the mean [mu] and epistemic std [sigma] of the
@@ -13,9 +13,9 @@ from typing import Callable
 
 import torch
 
-from torchrl_softae.modules._instruction_sets import instruction_set_functions
-from torchrl_softae.modules._profiling import seen_by_profiler
-from torchrl_softae.modules.kernels import load_extension
+from torchrl_softae.modules.engine._instruction_sets import instruction_set_functions
+from torchrl_softae.modules.engine._profiling import seen_by_profiler
+from torchrl_softae.modules.engine.kernels import load_extension
 
 _moments = load_extension("_moments")  # after torch (None: not built, or SOFTAE_KERNELS=0)
 if _moments is not None and not _moments.supported():  # built, but this CPU lacks AVX2

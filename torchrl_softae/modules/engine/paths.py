@@ -10,9 +10,8 @@ SiLU's instruction set and revision, the whole-network kernels' revisions, torch
 count, the candidates and how they were timed), so
 a resumed run on the same kind of machine makes the same choice as the run it resumes. Each
 candidate is timed in 5 interleaved rounds of at least 2 ms and judged by its best round: on a
-shared host, interference only ever adds time.
-``SOFTAE_INFERENCE_PATH=conv|conv-fused|bmm|conv-silu-kernel|bmm-silu-kernel|amx-network|fma-network``
-(or ``EnsembleWorldModel.inference_path``) fixes it for reproducibility.
+shared host, interference only ever adds time. ``model.engine.inference_path`` fixes it (a
+benchmark comparing the paths; ``kernels="torch"`` and ``SOFTAE_KERNELS=0`` keep it to the torch ones).
 """
 from __future__ import annotations
 
@@ -24,15 +23,15 @@ from pathlib import Path
 
 import torch
 
-from torchrl_softae.modules import amx_network, fma_network, silu_kernel
-from torchrl_softae.modules.precision import cpu_info, cpu_name, flags_of
+from torchrl_softae.modules.engine import amx_network, fma_network, silu_kernel
+from torchrl_softae.modules.engine.precision import cpu_info, cpu_name, flags_of
 
 __all__ = ["choose", "choices", "cache_path", "cpu_key", "INFERENCE_PATHS", "WHOLE_NETWORK_KERNELS"]
 
 #: grouped 1x1 convolutions (oneDNN) with the activation as its own kernel, the same with the
 #: activation fused into the convolution (a oneDNN post-op: one pass over the layer's output
 #: instead of two), batched matmuls; and the two unfused ones with the SiLU by the compiled kernel
-#: (torchrl_softae/csrc/silu.c; candidates only where it was built and the activation is SiLU);
+#: (torchrl_softae/modules/engine/csrc/silu.c; candidates only where it was built and the activation is SiLU);
 #: and the whole network in one kernel call: bf16 in AMX tiles (with SiLU on a CPU with AMX,
 #: csrc/amx_network.c) or in register blocks, fp32 on AVX-512F or AVX2+FMA and bf16 on AVX512-BF16
 #: (with SiLU, csrc/fma_network.c)
@@ -58,13 +57,13 @@ _RANKING_FLAGS = ("avx2", "fma", "avx512f", "avx512bw", "avx512_bf16", "amx_bf16
 
 def cpu_key(info: dict[str, str], silu_tag: str | None) -> str:
     """The CPU as the cache key names it, from its ``/proc/cpuinfo`` fields
-    (:func:`~torchrl_softae.modules.precision.cpu_info`). The model name alone is not enough:
+    (:func:`~torchrl_softae.modules.engine.precision.cpu_info`). The model name alone is not enough:
     virtual machines of two kinds both report "AMD EPYC", one with AVX-512 and one with AVX2 only,
     and a choice measured on one can be much slower on the other. So the key also has the family,
     model and the instruction sets of :data:`_RANKING_FLAGS`, and which instruction set the
     compiled SiLU runs on and its revision (``silu_tag``, :func:`.silu_kernel.cache_tag`: a rebuilt
     kernel may rank differently). ARM CPUs list no model name
-    (:func:`~torchrl_softae.modules.precision.cpu_name` names them by implementer and part), family
+    (:func:`~torchrl_softae.modules.engine.precision.cpu_name` names them by implementer and part), family
     or model."""
     flags = flags_of(info)
     isa = "+".join(f for f in _RANKING_FLAGS if f in flags) or "no listed ISA"

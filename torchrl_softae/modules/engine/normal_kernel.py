@@ -1,4 +1,4 @@
-"""Counter-based standard normal draws for planning (``torchrl_softae/csrc/normal.c``).
+"""Counter-based standard normal draws for planning (``torchrl_softae/modules/engine/csrc/normal.c``).
 
 The aleatoric noise of PETS-style propagation and the colored noise of iCEM's candidates are drawn
 at every model step, and torch's CPU generator (mt19937) draws on one thread: in a bf16 plan
@@ -15,13 +15,12 @@ set: ``benchmarks/README.md``.
 """
 from __future__ import annotations
 
-import os
 
 import torch
 
-from torchrl_softae.modules._instruction_sets import instruction_set_functions
-from torchrl_softae.modules._profiling import seen_by_profiler
-from torchrl_softae.modules.kernels import load_extension
+from torchrl_softae.modules.engine._instruction_sets import instruction_set_functions
+from torchrl_softae.modules.engine._profiling import seen_by_profiler
+from torchrl_softae.modules.engine.kernels import load_extension
 
 _normal = load_extension("_normal")  # after torch (None: not built, or SOFTAE_KERNELS=0)
 if _normal is not None and _normal.supported_isas()[-1] == "portable":
@@ -29,12 +28,7 @@ if _normal is not None and _normal.supported_isas()[-1] == "portable":
     # torch.randn: draw with torch there
     _normal = None
 
-__all__ = ["available", "applies", "randn", "normal_", "add_scaled_randn", "isa", "supported_isas", "use_isa", "enabled"]
-
-#: ``False``: every draw by ``torch.randn`` (its stream), to compare or to reproduce a run made
-#: before the kernel; read at every call. ``SOFTAE_NORMAL_KERNEL=0`` sets it at import (for the
-#: ``softae`` commands and sweeps); ``SOFTAE_KERNELS=0`` leaves the kernel unloaded altogether
-enabled: bool = os.environ.get("SOFTAE_NORMAL_KERNEL", "1") != "0"
+__all__ = ["available", "applies", "randn", "normal_", "add_scaled_randn", "isa", "supported_isas", "use_isa"]
 
 #: ``"avx512"``, ``"avx2"`` or ``"portable"`` (the same values on each), the ones this CPU runs, a switch
 isa, supported_isas, use_isa = instruction_set_functions(_normal)
@@ -47,15 +41,15 @@ def available() -> bool:
 
 def _kernel_draws(dtype: torch.dtype, device, generator: torch.Generator | None) -> bool:
     """Whether draws of ``dtype`` on ``device`` from ``generator`` come from the kernel: fp32 on
-    the CPU, a CPU generator or the default one, the kernel built and :data:`enabled`."""
-    return (enabled and _normal is not None and dtype == torch.float32 and torch.device(device).type == "cpu"
+    the CPU, a CPU generator or the default one, the kernel built."""
+    return (_normal is not None and dtype == torch.float32 and torch.device(device).type == "cpu"
             and (generator is None or generator.device.type == "cpu"))
 
 
 def applies(like: torch.Tensor, generator: torch.Generator | None = None) -> bool:
     """Whether :func:`randn` / :func:`add_scaled_randn` draw with the kernel for tensors like
     ``like`` (fp32 on the CPU, no autograd) and ``generator`` (a CPU one, or the default): where
-    it was built and :data:`enabled`."""
+    it was built."""
     return not like.requires_grad and _kernel_draws(like.dtype, like.device, generator)
 
 
@@ -74,13 +68,14 @@ def randn(shape: tuple[int, ...], generator: torch.Generator | None = None, dtyp
     return normal_(torch.empty(shape, dtype=torch.float32), generator)
 
 
-def normal_(out: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+def normal_(out: torch.Tensor, generator: torch.Generator | None = None, kernel: bool = True) -> torch.Tensor:
     """Fills the contiguous tensor ``out`` in place with the values ``randn(out.shape, generator,
     out.dtype, out.device)`` would return (a planning rollout draws its steps' noise into its own
-    buffer, the generator consumed as by one draw per step). Returns ``out``."""
+    buffer, the generator consumed as by one draw per step); ``kernel=False``: ``torch.randn``'s.
+    Returns ``out``."""
     if not out.is_contiguous():
         raise ValueError(f"normal_: out has strides {out.stride()}, expected a contiguous tensor")
-    if not _kernel_draws(out.dtype, out.device, generator):
+    if not kernel or not _kernel_draws(out.dtype, out.device, generator):
         return out.copy_(torch.randn(out.shape, generator=generator, dtype=out.dtype, device=out.device))
     with seen_by_profiler("torchrl_softae::randn"):
         _normal.fill(out.data_ptr(), 0, 0, out.numel(), _seed(generator), torch.get_num_threads())

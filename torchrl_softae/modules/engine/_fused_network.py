@@ -7,7 +7,7 @@ from typing import Callable
 
 import torch
 
-from torchrl_softae.modules._profiling import seen_by_profiler
+from torchrl_softae.modules.engine._profiling import seen_by_profiler
 
 PackedLayer = tuple[torch.Tensor, torch.Tensor]
 

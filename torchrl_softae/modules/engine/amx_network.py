@@ -1,4 +1,4 @@
-"""The ensemble's whole network in one AMX call (``torchrl_softae/csrc/amx_network.c``), bf16.
+"""The ensemble's whole network in one AMX call (``torchrl_softae/modules/engine/csrc/amx_network.c``), bf16.
 
 Every member's block of 32 rows runs through all layers in AMX tiles, each hidden layer's bias
 and SiLU applied to its tiles in L1, the last layer written in fp32: one call per network call
@@ -6,14 +6,14 @@ instead of five GEMM calls and four activation passes. Built at install time whe
 targets AMX (an optional extension); it runs where the CPU has AMX-TILE, AMX-BF16 and
 AVX512-BF16 and Linux grants the tile state (:func:`available`, :func:`why_not`). The ensemble
 offers it as the inference path ``amx-network`` (bf16, SiLU) and takes it only where it
-measures faster (:mod:`~torchrl_softae.modules.paths`).
+measures faster (:mod:`~torchrl_softae.modules.engine.paths`).
 """
 from __future__ import annotations
 
 import torch
 
-from torchrl_softae.modules._fused_network import PackedLayer, PackedNetworkBase, prepare, run
-from torchrl_softae.modules.kernels import load_extension
+from torchrl_softae.modules.engine._fused_network import PackedLayer, PackedNetworkBase, prepare, run
+from torchrl_softae.modules.engine.kernels import load_extension
 
 _amx_network = load_extension("_amx_network")  # after torch (None: not built, or SOFTAE_KERNELS=0)
 
@@ -38,7 +38,7 @@ RUNS = "bf16 with nn.SiLU on an AMX CPU"
 def why_not(dtype: torch.dtype = torch.bfloat16) -> str | None:
     """Why :func:`available` is ``False`` in ``dtype`` (``None`` where it is ``True``)."""
     if _amx_network is None:
-        return "the extension torchrl_softae.modules._amx_network was not built (no C compiler targeting AMX)"
+        return "the extension torchrl_softae.modules.engine._amx_network was not built (no C compiler targeting AMX)"
     if dtype != torch.bfloat16:
         return f"it computes in bfloat16, not {dtype}"
     return _amx_network.why_not()

@@ -8,8 +8,8 @@ also forms the next state and writes it into the next step's input).
 - :class:`SampledRollout`: PETS-AE's trajectory sampling, ``P`` particles per candidate, each on
   one member for the whole horizon, ``s' = m_l + std_l * z``.
 
-Built by :meth:`EnsembleWorldModel.deterministic_rollout` and
-:meth:`~EnsembleWorldModel.sampled_rollout`; an :class:`~torchrl_softae.envs.EnsembleModelEnv`
+Built by :meth:`torchrl_softae.modules.engine.InferenceEngine.deterministic_rollout` and
+:meth:`~torchrl_softae.modules.engine.InferenceEngine.sampled_rollout`; an :class:`~torchrl_softae.envs.EnsembleModelEnv`
 scores a plan's candidates through them. The layouts (buffers and prepared calls) live in the
 model's inference cache under keys whose first entry is one of :data:`ROLLOUT_KINDS`: one rollout
 holds a layout at a time, the next rollout of the same shape takes it again. The layout functions
@@ -25,8 +25,8 @@ from types import SimpleNamespace
 
 import torch
 
-from torchrl_softae.modules import moments_kernel, normal_kernel
-from torchrl_softae.modules.paths import WHOLE_NETWORK_KERNELS
+from torchrl_softae.modules.engine import moments_kernel, normal_kernel
+from torchrl_softae.modules.engine.paths import WHOLE_NETWORK_KERNELS
 
 __all__ = ["DeterministicRollout", "SampledRollout", "ROLLOUT_KINDS", "is_rollout_key"]
 
@@ -53,33 +53,32 @@ _ROLLOUT_TOKENS = itertools.count()
 _ROLLOUT_LOCK = threading.Lock()
 
 
-def _rollout_network(model, rows: Sequence[int], cols: int | None, device) -> tuple:
+def _rollout_network(model, rows: Sequence[int], cols: int | None, device, dtype: torch.dtype) -> tuple:
     """The whole-network kernel path and packed weights for a rollout's network calls of
     ``rows`` (each call's row count), or ``(None, None)`` where its steps cannot run as prepared
     kernel calls: autograd on, not the CPU, moments by torch ops, symlog states, no moments kernel,
     or an inference path that is not a whole-network kernel for one of the row counts."""
     d, d_a = model.observation_dim, model.action_dim
-    if (torch.is_grad_enabled() or torch.device(device).type != "cpu" or not model.fused_moments
-            or not model.uses_kernels
+    if (torch.is_grad_enabled() or torch.device(device).type != "cpu" or not model.engine.fused_moments
+            or not model.engine.uses_kernels
             or model.symlog_observations or not moments_kernel.available()
             or model.ensemble_size > moments_kernel.MAX_MEMBERS):
         return None, None
-    dtype = model.planning_dtype or torch.float32
-    paths = tuple(model._inference_path(torch.empty(r, d + d_a), dtype, cols) for r in sorted(set(rows)))
+    paths = tuple(model.engine._inference_path(torch.empty(r, d + d_a), dtype, cols) for r in sorted(set(rows)))
     if any(p not in WHOLE_NETWORK_KERNELS for p in paths):
         return None, None
-    return paths, tuple(model._packed_network(p, dtype, cols) for p in paths)
+    return paths, tuple(model.engine._packed_network(p, dtype, cols) for p in paths)
 
 
-def _take_layout(model, key: tuple, packed, owner: int, build) -> SimpleNamespace:
+def _take_layout(model, key: tuple, packed, owner: int, build, dtype: torch.dtype) -> SimpleNamespace:
     """The cached layout of buffers for the rollout ``key``, taken by ``owner`` (a rollout's
     token) until that rollout has run or is dropped, or a new one from ``build()``, kept for
     the next rollout of the same shape (a planner scores its iterations' candidates with the
     same shapes: preparing the calls cost more than a step). Another rollout of the same shape
     meanwhile (nested, or from another thread) gets its own."""
-    key = (*key, model.planning_dtype or torch.float32, torch.get_num_threads())
+    key = (*key, dtype, torch.get_num_threads())
     with _ROLLOUT_LOCK:  # taken by one rollout: the check and the taking in one step
-        hit = model._inference_cache.get(key)
+        hit = model.engine._inference_cache.get(key)
         # packed weights rebuilt (a parameter changed): the prepared calls read the old ones
         if hit is not None and hit.owner is None and _same_objects(hit.packed, packed):
             hit.owner = owner
@@ -87,13 +86,14 @@ def _take_layout(model, key: tuple, packed, owner: int, build) -> SimpleNamespac
     layout = build()
     layout.owner, layout.packed = owner, packed
     with _ROLLOUT_LOCK:
-        hit = model._inference_cache.get(key)
+        hit = model.engine._inference_cache.get(key)
         if hit is None or hit.owner is None:  # a rollout still running keeps its own
-            model._inference_cache[key] = layout
+            model.engine._inference_cache[key] = layout
     return layout
 
 
-def deterministic_layout(model, steps: int, rows: int, with_eta: bool, device, owner: int) -> SimpleNamespace:
+def deterministic_layout(model, steps: int, rows: int, with_eta: bool, device, owner: int,
+                         dtype: torch.dtype = torch.float32) -> SimpleNamespace:
     """The buffers of a :class:`DeterministicRollout` of ``steps`` x ``rows`` (every step's
     network input, ``eta``, the trajectory of states from the initial ones, each step's
     ``sigma``) and, where
@@ -102,7 +102,7 @@ def deterministic_layout(model, steps: int, rows: int, with_eta: bool, device, o
     (:func:`_take_layout`)."""
     d, d_a = model.observation_dim, model.action_dim
     cols = d if model.probabilistic else None  # the mean head only, as network_output(with_logvar=False)
-    paths, packed = _rollout_network(model, [rows], cols, device)
+    paths, packed = _rollout_network(model, [rows], cols, device, dtype)
 
     def build():
         layout = SimpleNamespace(
@@ -126,11 +126,12 @@ def deterministic_layout(model, steps: int, rows: int, with_eta: bool, device, o
             layout.compiled.append((network, moments, (states[h + 1], sigmas[h])))
         return layout
 
-    return _take_layout(model, (ROLLOUT_KINDS[0], steps, rows, with_eta, paths, str(device)), packed, owner, build)
+    return _take_layout(model, (ROLLOUT_KINDS[0], steps, rows, with_eta, paths, str(device)), packed, owner, build,
+                        dtype)
 
 
 def sampled_layout(model, steps: int, rows: int, particles: int, with_noise: bool, device,
-                   owner: int) -> SimpleNamespace:
+                   owner: int, dtype: torch.dtype = torch.float32) -> SimpleNamespace:
     """The buffers of a :class:`SampledRollout` of ``steps`` x ``rows`` candidates x
     ``particles`` (the first step's network input, ``rows`` rows, the later steps' ``rows *
     particles``, the candidates' initial states, members, noise, the trajectory of every
@@ -141,9 +142,9 @@ def sampled_layout(model, steps: int, rows: int, particles: int, with_noise: boo
     d, d_a = model.observation_dim, model.action_dim
     with_logvar = with_noise and model.probabilistic
     cols = d if (model.probabilistic and not with_logvar) else None
-    bounds = model._fused_logvar_bounds() if with_logvar else None
+    bounds = model.engine._fused_logvar_bounds() if with_logvar else None
     wide = with_logvar and bounds is None  # the kernel cannot form this aleatoric std
-    paths, packed = (None, None) if wide else _rollout_network(model, [rows, rows * particles], cols, device)
+    paths, packed = (None, None) if wide else _rollout_network(model, [rows, rows * particles], cols, device, dtype)
     n = rows * particles
 
     def build():
@@ -179,7 +180,7 @@ def sampled_layout(model, steps: int, rows: int, particles: int, with_noise: boo
         return layout
 
     key = (ROLLOUT_KINDS[1], steps, rows, particles, with_noise, paths, str(device))
-    return _take_layout(model, key, packed, owner, build)
+    return _take_layout(model, key, packed, owner, build, dtype)
 
 
 class _PlanningRollout:
@@ -263,7 +264,7 @@ class DeterministicRollout(_PlanningRollout):
     Elsewhere each step runs :meth:`EnsembleWorldModel.network_output` and the torch ops of the
     moments, with the same values (``test_deterministic_rollout_matches_the_torch_ops``).
 
-    Inference only (``torch.no_grad()``), in the model's ``planning_dtype``; the parameters must
+    Inference only (``torch.no_grad()``), the hidden layers in ``dtype`` (``None``: fp32); the parameters must
     not change while it runs. Iterating yields ``(s', sigma)``, ``(M, d_s)`` each, step by step,
     once. The yielded tensors are buffers that the model's next rollout of the same shape writes
     again (preallocated, as a planner's iterations reuse them): copy them to keep them. A rollout
@@ -274,6 +275,7 @@ class DeterministicRollout(_PlanningRollout):
         observation: ``(M, d_s)`` the initial states.
         normalized_actions: ``(H, M, d_a)`` (:meth:`EnsembleWorldModel.normalized_actions`).
         eta: ``(H, M, d_s)`` or ``None``.
+        dtype: the hidden layers' dtype (``torch.bfloat16`` to plan in bf16; ``None``: fp32).
 
     Examples:
         >>> import torch
@@ -281,21 +283,22 @@ class DeterministicRollout(_PlanningRollout):
         >>> model = EnsembleWorldModel(3, 1).eval()
         >>> acts = model.normalized_actions(torch.zeros(4, 2, 1))  # H = 4 steps of 2 candidates
         >>> with torch.no_grad():
-        ...     rollout = model.deterministic_rollout(torch.zeros(2, 3), acts)
+        ...     rollout = model.engine.deterministic_rollout(torch.zeros(2, 3), acts)
         ...     steps = [(s.clone(), sigma.clone()) for s, sigma in rollout]
         >>> len(steps), steps[-1][0].shape  # (s', sigma) per step
         (4, torch.Size([2, 3]))
     """
 
     def __init__(self, model, observation: torch.Tensor, normalized_actions: torch.Tensor,
-                 eta: torch.Tensor | None = None):
+                 eta: torch.Tensor | None = None, dtype: torch.dtype | None = None):
         d = model.observation_dim
         H, M = _check_rollout_actions("DeterministicRollout", model, observation, normalized_actions)
         if eta is not None and eta.shape != (H, M, d):
             raise ValueError(f"DeterministicRollout: eta has shape {tuple(eta.shape)}, expected ({H}, {M}, {d})")
-        self.model = model
+        self.model, self.dtype = model, dtype
         self._token = next(_ROLLOUT_TOKENS)
-        self._layout = layout = deterministic_layout(model, H, M, eta is not None, observation.device, self._token)
+        self._layout = layout = deterministic_layout(model, H, M, eta is not None, observation.device, self._token,
+                                                     dtype or torch.float32)
         # every step's network input: the actions' columns at once, the first state's now, each
         # next state's by the step before
         layout.inputs[..., d:] = normalized_actions
@@ -314,8 +317,8 @@ class DeterministicRollout(_PlanningRollout):
         inputs, eta, states, sigmas = layout.inputs, layout.eta, layout.trajectory, layout.sigmas
         H = inputs.shape[0]
         for h in range(H):
-            raw = model.network_output(inputs[h], with_logvar=False)
-            state, sigma, _, _ = model._moments_from_output(
+            raw = model.network_output(inputs[h], with_logvar=False, dtype=self.dtype)
+            state, sigma, _, _ = model.moments_from_output(
                 raw, states[h], eta=None if eta is None else eta[h], next_input=inputs[h + 1] if h + 1 < H else None)
             states[h + 1].copy_(state)
             sigmas[h].copy_(sigma)
@@ -340,7 +343,7 @@ class SampledRollout(_PlanningRollout):
     :meth:`~torchrl_softae.envs.EnsembleModelEnv.propagate` draws it step by step: the same
     generator state gives the same noise.
 
-    Inference only, in the model's ``planning_dtype``. Iterating yields ``(s', sigma)``, ``(M * P,
+    Inference only, the hidden layers in ``dtype`` (``None``: fp32). Iterating yields ``(s', sigma)``, ``(M * P,
     d_s)`` each (row ``m * P + p``: candidate ``m``'s particle ``p``), step by step, once: buffers
     that the next rollout of the same shape writes again (copy them to keep them).
 
@@ -351,6 +354,7 @@ class SampledRollout(_PlanningRollout):
         member_index: ``(M, P)`` each particle's member.
         aleatoric_noise: draw the members' aleatoric noise.
         generator: the noise's source (torch's default generator if ``None``).
+        dtype: the hidden layers' dtype (``None``: fp32).
 
     Examples:
         >>> import torch
@@ -359,13 +363,14 @@ class SampledRollout(_PlanningRollout):
         >>> acts = model.normalized_actions(torch.zeros(4, 2, 1))  # H = 4 steps of 2 candidates
         >>> members = torch.tensor([[0, 1, 2], [3, 4, 0]])  # 3 particles each
         >>> with torch.no_grad():
-        ...     steps = [s.clone() for s, _ in model.sampled_rollout(torch.zeros(2, 3), acts, members)]
+        ...     steps = [s.clone() for s, _ in model.engine.sampled_rollout(torch.zeros(2, 3), acts, members)]
         >>> len(steps), steps[-1].shape  # s' of every particle, step by step
         (4, torch.Size([6, 3]))
     """
 
     def __init__(self, model, observation: torch.Tensor, normalized_actions: torch.Tensor,
-                 member_index: torch.Tensor, aleatoric_noise: bool = True, generator: torch.Generator | None = None):
+                 member_index: torch.Tensor, aleatoric_noise: bool = True, generator: torch.Generator | None = None,
+                 dtype: torch.dtype | None = None):
         d = model.observation_dim
         H, M = _check_rollout_actions("SampledRollout", model, observation, normalized_actions)
         if member_index.dim() != 2 or member_index.shape[0] != M or member_index.dtype.is_floating_point:
@@ -376,10 +381,10 @@ class SampledRollout(_PlanningRollout):
         if not (0 <= int(lo) and int(hi) < L):
             raise ValueError(f"SampledRollout: member_index outside [0, {L})")
         P = member_index.shape[1]
-        self.model, self.particles = model, P
+        self.model, self.particles, self.dtype = model, P, dtype
         self._token = next(_ROLLOUT_TOKENS)
-        self._layout = layout = sampled_layout(model, H, M, P, aleatoric_noise, observation.device,
-                                                              self._token)
+        self._layout = layout = sampled_layout(model, H, M, P, aleatoric_noise, observation.device, self._token,
+                                               dtype or torch.float32)
         layout.first_input.copy_(model.network_input(observation, normalized_actions[0], action_normalized=True))
         if H > 1:  # the later steps' action columns, each candidate's repeated for its particles
             layout.inputs.view(H - 1, M, P, -1)[..., d:] = normalized_actions[1:].unsqueeze(2)
@@ -394,7 +399,7 @@ class SampledRollout(_PlanningRollout):
                 if grad:
                     noise.copy_(torch.randn(noise.shape, generator=generator, device=noise.device))
                 else:
-                    normal_kernel.normal_(noise, generator)
+                    normal_kernel.normal_(noise, generator, kernel=model.engine.uses_kernels and model.engine.kernel_noise)
 
     @property
     def network_calls(self) -> list[tuple[tuple[int, int], bool]]:
@@ -409,10 +414,10 @@ class SampledRollout(_PlanningRollout):
         with_noise = layout.noise is not None
         for h in range(H):
             x = layout.first_input if h == 0 else layout.inputs[h - 1]
-            raw = model.network_output(x, with_logvar=with_noise)
+            raw = model.network_output(x, with_logvar=with_noise, dtype=self.dtype)
             if h == 0:  # the candidates' rows, each repeated for its particles
                 raw = raw.repeat_interleave(P, dim=1)
-            _, sigma, picked, ale = model._moments_from_output(raw, states[h], with_noise, layout.member)
+            _, sigma, picked, ale = model.moments_from_output(raw, states[h], with_noise, layout.member)
             states[h + 1].copy_(picked if not with_noise else torch.addcmul(picked, ale, layout.noise[h]))
             sigmas[h].copy_(sigma)
             if h + 1 < H:

@@ -10,7 +10,7 @@
  * never leave L1, the member's weights (0.5 MiB in bf16) stay in L2, and there is one OpenMP
  * fork per network call instead of one per layer.
  *
- * Layout (the Python side packs it, torchrl_softae/modules/amx_network.py):
+ * Layout (the Python side packs it, torchrl_softae/modules/engine/amx_network.py):
  *   x      (N, d_in) fp32, row-major: the normalized input every member shares;
  *   weight (L, Mp / 16, Kp / 32, 16, 32) bf16 per layer: for output block nb and input block kb,
  *          one 16 x 32 tile in AMX's pair-interleaved (VNNI) form, element [r][2 j + t] being
@@ -256,7 +256,7 @@ static PyMethodDef METHODS[] = {
 static struct PyModuleDef MODULE = {PyModuleDef_HEAD_INIT, "_amx_network", "the ensemble's network in AMX tiles (bf16)",
                                     -1, METHODS, NULL, NULL, NULL, NULL};
 
-/* part of the key of inference-path choices cached on disk (torchrl_softae/modules/paths.py) */
+/* part of the key of inference-path choices cached on disk (torchrl_softae/modules/engine/paths.py) */
 #define SOFTAE_AMX_NETWORK_REVISION 1
 
 PyMODINIT_FUNC PyInit__amx_network(void) {
