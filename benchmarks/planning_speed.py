@@ -34,7 +34,7 @@ heavy.
                     (model.engine.fused_moments = False) instead of the one-pass kernel
   ...@torch-randn   (--compare-noise) the four icem rows with the model's normal draws by torch.randn
                     (model.engine.kernel_noise = False) instead of the counter-based kernel
-  ...@step-loop     (--compare-rollout) the four icem rows scored by the per-step tensor loop
+  ...@step-loop     (--compare-rollout) the four icem rows scored by stepping the TorchRL stack
                     (model.engine.rollouts = False) instead of
                     the model's deterministic (one particle) or sampled (ten) rollout, prepared
                     kernel calls
@@ -741,7 +741,7 @@ def main():
                 planners[f"{key}@torch-randn"] = icem_contender(key, sample_env, opt_env, icem)
                 torch_randn.add(f"{key}@torch-randn")
 
-        step_loop = set()  # contenders scored by the per-step loop (the rollouts' baseline)
+        step_loop = set()  # contenders scored by stepping the TorchRL stack (the rollouts' baseline)
         if args.compare_rollout:
             for key in icem_rows:
                 planners[f"{key}@step-loop"] = icem_contender(key, sample_env, opt_env, icem)

@@ -299,56 +299,47 @@ def test_torchrl_mppi_plans_over_the_model_env():
     assert a.shape == (2,) and a.abs().max() <= 1
 
 
-def test_tensor_loop_matches_the_torchrl_stack():
-    """The model env's tight tensor loop gives exactly what stepping the TorchRL stack gives, and a
-    stack with a transform it does not know falls back to env.step."""
+def test_rollouts_match_the_torchrl_stack():
+    """A plan is scored by the engine's rollout where one applies (deterministic with one particle,
+    trajectory sampling with several), as prepared kernel calls on a whole-network path and as torch
+    ops elsewhere, and gives exactly what stepping the TorchRL stack gives, noise draws included;
+    every other plan (noisy mean or optimistic particles, one sampled particle, rollouts switched
+    off, a stack with a transform the model env does not know) is scored by stepping."""
     from torchrl.envs import RewardScaling
 
     from torchrl_softae.tasks import Task, TaskReward
 
     task = Task("t", lambda s, a, s2: -(s2 - 0.3).square().sum(-1) - 0.1 * a.square().sum(-1), 4)
-    cases = [
-        (_model_env("mean"), [UncertaintyReward()], 1),
-        (_model_env("optimistic"), [HallucinatedControl(beta=1.5), UncertaintyReward()], 1),
-        (_model_env("optimistic"), [HallucinatedControl(beta=2.0), TaskReward(task, action_dim=2)], 1),
-        (_model_env("sample", aleatoric_noise=False), [UncertaintyReward()], 3),
-        # stochastic particles: the tensor loop runs the model once for a candidate's particles at
-        # the first step (they share its state and action), stepping runs it for each; the same
-        # returns, noise draws included
-        (_model_env("sample"), [UncertaintyReward()], 3),
-        (_model_env("sample"), [TaskReward(task, action_dim=2)], 4),
-        (_model_env("optimistic", aleatoric_noise=True), [HallucinatedControl(beta=2.0), TaskReward(task, action_dim=2)], 3),
-        (_model_env("mean", aleatoric_noise=True), [UncertaintyReward()], 2),
+    cases = [  # (model env, transforms, particles, the rollout that scores it)
+        (_model_env("mean"), [UncertaintyReward()], 1, "deterministic"),
+        (_model_env("optimistic"), [HallucinatedControl(beta=1.5), UncertaintyReward()], 1, "deterministic"),
+        (_model_env("optimistic"), [HallucinatedControl(beta=2.0), TaskReward(task, action_dim=2)], 1, "deterministic"),
+        (_model_env("sample", aleatoric_noise=False), [UncertaintyReward()], 3, "sampled"),
+        (_model_env("sample"), [UncertaintyReward()], 3, "sampled"),
+        (_model_env("sample"), [TaskReward(task, action_dim=2)], 4, "sampled"),
+        (_model_env("sample"), [UncertaintyReward()], 1, None),
+        (_model_env("optimistic", aleatoric_noise=True), [HallucinatedControl(beta=2.0), TaskReward(task, action_dim=2)], 3, None),
+        (_model_env("mean", aleatoric_noise=True), [UncertaintyReward()], 2, None),
     ]
-    for base, transforms, particles in cases:
+    for base, transforms, particles, kind in cases:
         tenv = TransformedEnv(base, Compose(*transforms))
         assert base._tensor_stack(tenv) is not None
+        member = torch.arange(particles).expand(2, 5, particles) % 5 if particles > 1 else None
+        assert base._rollout_kind(particles, member) == kind
+        base.world_model.engine.rollouts = False
+        assert base._rollout_kind(particles, member) is None
+        base.world_model.engine.rollouts = True
+        if kind is None:
+            continue
         d = tenv.action_spec.shape[-1]
         obs = torch.randn(2, 1, 1, 3).expand(2, 5, particles, 3)
         acts = (torch.rand(2, 5, 1, 4, d) * 2 - 1).expand(2, 5, particles, 4, d)
-        member = torch.arange(particles).expand(2, 5, particles) % 5 if particles > 1 else None
-        # the per-step loop first: every network call goes through network_output
-        base.world_model.engine.rollouts = False
-        rows, network = [], base.world_model.network_output
-        base.world_model.network_output = lambda x, *a, **k: (rows.append(x.shape[0]), network(x, *a, **k))[1]
-        base.set_seed(0)
-        fast = base._returns_on_tensors(base._tensor_stack(tenv), obs, acts[:, :, 0], member)
-        assert rows == [10] + [10 * particles] * 3  # 2 x 5 candidates
         base.set_seed(0)
         slow = base._returns_through_step(tenv, obs, acts, member)
-        del base.world_model.network_output
-        torch.testing.assert_close(fast, slow)
-        base.world_model.engine.rollouts = True
-        # the rollouts (deterministic with one particle, trajectory sampling with several), as
-        # prepared kernel calls on a whole-network path and as torch ops elsewhere: the same returns
-        # as stepping, noise draws included
-        kind = ("rollout" if base.deterministic and particles == 1 else
-                "sampled rollout" if base.mode == "sample" and particles > 1 else None)
-        if kind is None:
-            continue
         base.set_seed(0)
-        torch.testing.assert_close(base._returns_on_tensors(base._tensor_stack(tenv), obs, acts[:, :, 0], member),
+        torch.testing.assert_close(base._returns_by_rollout(kind, base._tensor_stack(tenv), obs, acts[:, :, 0], member),
                                    slow)
+        cache_kind = "rollout" if kind == "deterministic" else "sampled rollout"
         for path in ("amx-network", "fma-network", "bmm"):
             for precision in ("fp32", "bf16"):
                 if path not in base.world_model.engine.available_inference_paths(resolve_planning_dtype(precision) or torch.float32):
@@ -356,9 +347,9 @@ def test_tensor_loop_matches_the_torchrl_stack():
                 base.world_model.engine.inference_path = path
                 with base._planning(precision), torch.no_grad():
                     base.set_seed(0)
-                    fast = base._returns_on_tensors(base._tensor_stack(tenv), obs, acts[:, :, 0], member)
+                    fast = base._returns_by_rollout(kind, base._tensor_stack(tenv), obs, acts[:, :, 0], member)
                     compiled = [v.compiled is not None for k, v in base.world_model.engine._inference_cache.items()
-                                if k[0] == kind and path in (k[-4] or ())]  # k[-4]: the kernel paths
+                                if k[0] == cache_kind and path in (k[-4] or ())]  # k[-4]: the kernel paths
                     assert path == "bmm" or (compiled and all(compiled))
                     base.set_seed(0)
                     slow = base._returns_through_step(tenv, obs, acts, member)

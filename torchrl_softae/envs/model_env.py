@@ -311,9 +311,11 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         e.g. :class:`~torchrl_softae.envs.transforms.HallucinatedControl`, and set the reward,
         e.g. :class:`~torchrl_softae.envs.transforms.UncertaintyReward`). With ``num_particles``
         > 1 in ``"sample"`` mode every particle keeps one member for the whole horizon (TS-inf),
-        members spread evenly over a candidate's particles from a random offset; at the first step
-        a candidate's particles share its state and action, so the ensemble runs once for them
-        (``propagate(..., particles=P)``) and only the member choice and the noise differ.
+        members spread evenly over a candidate's particles from a random offset. Plans the engine
+        has a rollout for (deterministic with one particle: Mean-AE, SoftAE, H-UCRL; trajectory
+        sampling with particles: PETS-AE) are scored by it on plain tensors (at the first step a
+        candidate's particles share its state and action, so the ensemble runs once for them);
+        every other plan by stepping ``env`` (TorchRL's ``step``).
         """
         env = self if env is None else env
         B, N, H, d = action_sequences.shape
@@ -332,9 +334,10 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             offset = torch.randint(L, (B, N, 1), generator=generator, device=action_sequences.device)
             member = (torch.arange(P, device=action_sequences.device) + offset) % L
         stack = self._tensor_stack(env)
+        kind = self._rollout_kind(P, member) if stack is not None else None
         with self._planning(precision):
-            if stack is not None:
-                ret = self._returns_on_tensors(stack, obs, action_sequences, member)
+            if kind is not None:
+                ret = self._returns_by_rollout(kind, stack, obs, action_sequences, member)
             else:
                 acts = action_sequences.unsqueeze(2).expand(B, N, P, H, d)
                 ret = self._returns_through_step(env, obs, acts, member)
@@ -350,11 +353,23 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         transforms = list(env.transform) if isinstance(env.transform, Compose) else [env.transform]
         return transforms if all(isinstance(t, PlanningTransform) for t in transforms) else None
 
-    def _returns_on_tensors(self, stack, obs, action_sequences, member) -> torch.Tensor:
-        """The horizon loop on plain tensors (no TensorDict, no spec work per step): the same
-        arithmetic as stepping the TorchRL stack (``test_tensor_loop_matches_the_torchrl_stack``).
+    def _rollout_kind(self, particles: int, member) -> str | None:
+        """The engine's rollout that scores this plan (``"deterministic"``: one particle, no noise;
+        ``"sampled"``: trajectory sampling with particles), or ``None``: TorchRL's step path."""
+        engine = self.world_model.engine
+        if engine is None or not engine.rollouts:
+            return None
+        if self.deterministic and particles == 1:
+            return "deterministic"
+        return "sampled" if self.mode == "sample" and member is not None else None
+
+    def _returns_by_rollout(self, kind, stack, obs, action_sequences, member) -> torch.Tensor:
+        """The returns of a plan scored by the engine's rollout ``kind`` on plain tensors (no
+        TensorDict, no spec work per step): the same values as stepping the TorchRL stack
+        (``test_rollouts_match_the_torchrl_stack``).
 
         Args:
+            kind: :meth:`_rollout_kind`.
             stack: the transforms (:meth:`_tensor_stack`).
             obs: ``(B, N, P, d_s)`` the initial states of each candidate's ``P`` particles (the same
                 state for all of them).
@@ -364,8 +379,6 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         Returns:
             ``(B, N, P, 1)`` returns.
         """
-        B, N, P = obs.shape[:-1]
-        H = action_sequences.shape[-2]
         # The action transforms map each step's action alone: once for the whole horizon (not once
         # per step), laid out step by step so that a step's entries are contiguous, (B, N, 1, k);
         # so are the actions as the network takes them.
@@ -374,29 +387,12 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
             entries = t.plan_action(entries)
         entries = {k: v.movedim(-2, 0).unsqueeze(-2).contiguous() for k, v in entries.items()}
         model_actions = self.world_model.normalized_actions(entries["action"])
-        if self.deterministic and P == 1 and self.world_model.engine.rollouts:
+        if kind == "deterministic":
             return self._deterministic_returns(stack, obs, entries, model_actions)
-        if self.mode == "sample" and member is not None and self.world_model.engine.rollouts:
-            return self._sampled_returns(stack, obs, entries, model_actions, member)
-        ret = torch.zeros(B, N, P, 1, device=obs.device)
-        for h in range(H):
-            step = {k: v[h] for k, v in entries.items()}  # (B, N, 1, k): a candidate's, for its particles
-            particles = {k: v.expand(B, N, P, v.shape[-1]) for k, v in step.items()}
-            if h == 0 and P > 1:
-                # a candidate's particles share its start state and first action: one model call
-                # serves them all (1 / H of a stochastic plan's network work)
-                nxt, sigma = self._propagate(obs[..., :1, :], model_actions[0], step.get("eta"), member, P)
-            else:
-                nxt, sigma = self._propagate(obs, model_actions[h].expand(B, N, P, -1), particles.get("eta"), member)
-            reward = torch.zeros_like(ret)
-            for t in stack:
-                reward = t.plan_reward(obs, particles["action"], nxt, sigma, reward)
-            ret += reward.reshape(ret.shape).float()
-            obs = nxt
-        return ret
+        return self._sampled_returns(stack, obs, entries, model_actions, member)
 
     def _deterministic_returns(self, stack, obs, entries, model_actions) -> torch.Tensor:
-        """:meth:`_returns_on_tensors` with deterministic propagation and one particle per candidate
+        """:meth:`_returns_by_rollout` with deterministic propagation and one particle per candidate
         (``obs`` ``(B, N, 1, d_s)``; ``entries`` and ``model_actions`` step-major, ``(H, B, N, 1,
         k)``): the model's steps laid out once (:meth:`torchrl_softae.modules.engine.InferenceEngine.deterministic_rollout`),
         on flat ``(B * N, k)`` rows; the rewards of all steps at once (:meth:`_rollout_returns`)."""
@@ -412,7 +408,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         return self._rollout_returns(stack, rollout, entries["action"], (B, N, 1))
 
     def _sampled_returns(self, stack, obs, entries, model_actions, member) -> torch.Tensor:
-        """:meth:`_returns_on_tensors` with trajectory sampling, each particle following its member
+        """:meth:`_returns_by_rollout` with trajectory sampling, each particle following its member
         (``obs`` ``(B, N, P, d_s)``, ``member`` ``(B, N, P)``; ``entries`` and ``model_actions``
         step-major, ``(H, B, N, 1, k)``): the model's steps laid out once
         (:meth:`torchrl_softae.modules.engine.InferenceEngine.sampled_rollout`, the network once for a candidate's particles
