@@ -208,6 +208,35 @@ def plot(rows: list[tuple], kind: str, cpu: str, path: Path) -> None:
     plt.close(fig)
 
 
+def targets_table(kind: str, checked: list[tuple], ranges: dict, runs: list[str]) -> str:
+    """The targets of ``kind`` as a markdown table (with each value's range over ``runs``)."""
+    record = _load(f"planning_speed-{kind}.json") or _load(f"eval_batch_speed-{kind}.json")
+    out = [f"# speed targets on {kind} ({record['cpu']['cpu']}), from benchmarks/results/*-{kind}*.json"]
+    # the allocator setting moves plan times (benchmarks/studies/allocator_speed.py): say which each record ran with
+    names = [f"planning_speed-{kind}.json", f"eval_batch_speed-{kind}.json", f"eval_batch_speed-{kind}-bf16.json"]
+    out.append("allocator: " + "; ".join(f"{n} {r.get('allocator', 'default (recorded before the option)')}"
+                                         for n in names if (r := _load(n)) is not None) + "\n")
+    spread = (" measured over the runs (how many, the record included) | bounds over them: at the GEMM peak; "
+              "network calls alone |") if runs else ""
+    out.append(f"| target | where | measured | at the GEMM peak | its network calls alone | met |{spread}")
+    out.append("|---|---|---|---|---|---|" + ("---|---|" if runs else ""))
+    for name, op, threshold, where, value, at_peak, alone, met in checked:
+        if value is None:
+            out.append(f"| {name} {op} {threshold:g} | {where} | not measured | | | |" + (" | |" if runs else ""))
+            continue
+        fmt = (lambda v: f"{v:.0f}") if "%" in name or "ms" in name else (lambda v: f"{v:.2f}x")
+        if fmt(value) == fmt(threshold):  # a value that rounds onto its threshold: show which side it is on
+            fmt = (lambda v: f"{v:.1f}") if "%" in name or "ms" in name else (lambda v: f"{v:.3f}x")
+        bounds = " | ".join("" if b is None else fmt(b) for b in (at_peak, alone))
+        line = f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bounds} | {'yes' if met else 'no'} |"
+        if runs:
+            measured, peak_bounds, alone_bounds = ranges[(name, where)]
+            bounds = "; ".join(value_range(b, fmt) if b else "" for b in (peak_bounds, alone_bounds))
+            line += f" {value_range(measured, fmt)} ({len(measured)}) | {bounds if bounds != '; ' else ''} |"
+        out.append(line)
+    return "\n".join(out)
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--kind", choices=KINDS, default=None, help="default: this machine's kind")
@@ -225,30 +254,8 @@ def main():
     if missing:
         p.exit(2, f"speed_targets: --runs {' '.join(missing)}: no planning_speed-{kind}-TAG.json or "
                   f"eval_batch_speed-{kind}[-bf16]-TAG.json in {RESULTS}\n")
+    print(targets_table(kind, checked, ranges, args.runs))
     record = _load(f"planning_speed-{kind}.json") or _load(f"eval_batch_speed-{kind}.json")
-    print(f"# speed targets on {kind} ({record['cpu']['cpu']}), from benchmarks/results/*-{kind}*.json")
-    # the allocator setting moves plan times (benchmarks/studies/allocator_speed.py): say which each record ran with
-    names = [f"planning_speed-{kind}.json", f"eval_batch_speed-{kind}.json", f"eval_batch_speed-{kind}-bf16.json"]
-    print("allocator: " + "; ".join(f"{n} {r.get('allocator', 'default (recorded before the option)')}"
-                                     for n in names if (r := _load(n)) is not None) + "\n")
-    spread = (" measured over the runs (how many, the record included) | bounds over them: at the GEMM peak; "
-              "network calls alone |") if args.runs else ""
-    print(f"| target | where | measured | at the GEMM peak | its network calls alone | met |{spread}")
-    print("|---|---|---|---|---|---|" + ("---|---|" if args.runs else ""))
-    for name, op, threshold, where, value, at_peak, alone, met in checked:
-        if value is None:
-            print(f"| {name} {op} {threshold:g} | {where} | not measured | | | |" + (" | |" if args.runs else ""))
-            continue
-        fmt = (lambda v: f"{v:.0f}") if "%" in name or "ms" in name else (lambda v: f"{v:.2f}x")
-        if fmt(value) == fmt(threshold):  # a value that rounds onto its threshold: show which side it is on
-            fmt = (lambda v: f"{v:.1f}") if "%" in name or "ms" in name else (lambda v: f"{v:.3f}x")
-        bounds = " | ".join("" if b is None else fmt(b) for b in (at_peak, alone))
-        line = f"| {name} {op} {threshold:g} | {where} | {fmt(value)} | {bounds} | {'yes' if met else 'no'} |"
-        if args.runs:
-            measured, peak_bounds, alone_bounds = ranges[(name, where)]
-            bounds = "; ".join(value_range(b, fmt) if b else "" for b in (peak_bounds, alone_bounds))
-            line += f" {value_range(measured, fmt)} ({len(measured)}) | {bounds if bounds != '; ' else ''} |"
-        print(line)
     if args.plot:
         path = RESULTS / "plots" / f"speed_targets-{kind}.png"
         drawable = [r for r in checked if r[4] is not None and (r[5], r[6]) != (None, None)]

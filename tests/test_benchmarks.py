@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = sorted(p for p in [*(ROOT / "benchmarks").glob("*.py"), *(ROOT / "benchmarks" / "studies").glob("*.py")]
                  if not p.name.startswith("_"))
@@ -229,3 +231,21 @@ def test_the_twin_claims_follow_their_rules(tmp_path, monkeypatch):
         f.unlink()
     rows = scorecard.sopra_claims(scorecard.sopra_results())
     assert all(r["verdict"] == "untested" and "3 of hucrl (has 0)" in r["why"] for r in rows)
+
+
+def test_the_results_pages_are_what_the_committed_results_give():
+    """``python benchmarks/results_pages.py`` renders every generated block of ``docs/results/*.md``
+    from the committed results; a result added, or a table edited by hand, without rendering the
+    pages fails here. An unknown block key is one clear error."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import results_pages
+
+    pages = sorted((ROOT / "docs" / "results").glob("*.md"))
+    blocks = {p.name: results_pages.BLOCK.findall(p.read_text()) for p in pages}
+    assert {"soft-arm.md", "sopra.md", "fish.md", "leg.md", "pendulum.md", "planning-speed.md"} <= {
+        name for name, found in blocks.items() if found}
+    for page in pages:
+        text = page.read_text()
+        assert results_pages.render_page(text) == text, f"{page.name}: run python benchmarks/results_pages.py"
+    with pytest.raises(ValueError, match="generated block 'plot:x': expected one of sweep:..."):
+        results_pages.render_page("<!-- generated: plot:x -->\nold\n<!-- end generated -->")

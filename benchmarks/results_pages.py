@@ -1,0 +1,166 @@
+"""The results pages' tables, rendered from the committed results (never copied by hand).
+
+    python benchmarks/results_pages.py           # rewrites every generated block of docs/results/*.md
+    python benchmarks/results_pages.py --check   # exit 1 naming each block that differs
+
+A page marks each block it does not write by hand:
+
+    <!-- generated: KEY -->
+    ...
+    <!-- end generated -->
+
+and ``KEY`` names what renders it:
+
+- ``sweep:NAME``: the tables of the committed report of a sweep,
+  ``benchmarks/results/sweeps/NAME/report.json`` (``softae report --merge`` of its run archive; a
+  report from before reports archived their runs has only its tables: its ``report.md``'s);
+- ``replication:ENV``: ``softae report`` of the replication records in
+  ``benchmarks/results/replication/ENV/`` (one table per budget);
+- ``arm:ENV``: the arm's multi-budget table from ``benchmarks/results/arm_v1/`` (``arm136_v1/``),
+  as ``benchmarks/replication_arm.py --table`` prints it;
+- ``arm-groups:ENV:BUDGET``: the arm's held-out nMSE by group of state dimensions at ``BUDGET``
+  episodes, beside the s' = s and predict-the-mean baselines;
+- ``file:PATH``: a table a benchmark script wrote to a committed file (e.g.
+  ``benchmarks/results/sopra_eval.md``, by ``benchmarks/sopra_eval.py``);
+- ``speed:KIND[:TAG,...]``: the planning-speed targets of the records of a CPU kind, with each
+  value's range over the runs ``TAG`` (``benchmarks/speed_targets.py``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = ROOT / "docs" / "results"
+BLOCK = re.compile(r"(<!-- generated: (?P<key>[^ ]+) -->\n)(?P<body>.*?)(<!-- end generated -->)", re.S)
+
+
+def _report_body(markdown: str) -> str:
+    """A ``softae report`` markdown without its first heading (it names a temporary folder) and the
+    list of the earlier reports its runs came from (the page names its source)."""
+    lines = markdown.splitlines()[1:]
+    if "## Runs from earlier reports (their run dirs are not below the root)" in lines:
+        start = lines.index("## Runs from earlier reports (their run dirs are not below the root)")
+        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")), len(lines))
+        lines = lines[:start] + lines[end:]
+    return "\n".join(lines).strip()
+
+
+def _sweep(name: str) -> str:
+    from torchrl_softae.pipeline.report import report
+
+    archive = ROOT / "benchmarks" / "results" / "sweeps" / name / "report.json"
+    if "runs" not in json.loads(archive.read_text()):
+        return _report_body(archive.with_suffix(".md").read_text())
+    with tempfile.TemporaryDirectory() as tmp:
+        text, *_ = report(Path(tmp) / "report", plots=False, warn=lambda m: None, merge=[archive])
+    return _report_body(text)
+
+
+def _replication(env: str) -> str:
+    from torchrl_softae.pipeline.report import report
+
+    records = ROOT / "benchmarks" / "results" / "replication" / env
+    with tempfile.TemporaryDirectory() as tmp:
+        copy = Path(tmp) / env
+        shutil.copytree(records, copy)
+        text, *_ = report(copy, plots=False, warn=lambda m: None)
+    return _report_body(text)
+
+
+def _arm(env: str) -> str:
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import replication_arm
+
+    return replication_arm.table(env).strip()
+
+
+def _arm_groups(spec: str) -> str:
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import replication_arm
+    from torchrl_softae.pipeline.methods import METHOD_NAMES
+
+    env, _, budget = spec.partition(":")
+    rows = [r for r in (json.loads(p.read_text()) for p in sorted(replication_arm.results_dir(env).glob("*.json")))
+            if r["episodes"] == int(budget)]
+    groups = [k.split("/", 1)[1] for k in rows[0]["accuracy"] if k.startswith("heldout_nmse/")]
+    keys = ["heldout_nmse", *(f"heldout_nmse/{g}" for g in groups)]
+
+    def pm(values):
+        v = np.asarray(values, dtype=float)
+        return f"{v.mean():.3g}" + (f" ± {v.std(ddof=1):.2g}" if len(v) > 1 else "")
+
+    out = ["| method | n | overall | " + " | ".join(g.replace("_", " ") for g in groups) + " |",
+           "|---|---|---|" + "---|" * len(groups)]
+    for name, suffix in (("s' = s", "_identity"), ("predict the mean", "_mean")):  # the same set: one value
+        out.append(f"| {name} | - | " + " | ".join(f"{rows[0]['accuracy'][k.replace('heldout_nmse', 'heldout_nmse' + suffix)]:.3g}"
+                                                  for k in keys) + " |")
+    for m in [m for m in METHOD_NAMES if any(r["method"] == m for r in rows)]:
+        rs = [r for r in rows if r["method"] == m]
+        out.append(f"| {m} | {len(rs)} | " + " | ".join(pm([r["accuracy"][k] for r in rs]) for k in keys) + " |")
+    return "\n".join(out)
+
+
+def _speed(spec: str) -> str:
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import speed_targets
+
+    kind, _, tags = spec.partition(":")
+    runs = tags.split(",") if tags else []
+    ranges, missing = speed_targets.run_ranges(kind, runs) if runs else ({}, [])
+    if missing:
+        raise ValueError(f"speed:{spec}: no records for the runs {', '.join(missing)}")
+    table = speed_targets.targets_table(kind, speed_targets.checked_rows(kind), ranges, runs)
+    return table.split("\n", 1)[1].strip()  # the page has its own heading
+
+
+def _file(path: str) -> str:
+    return (ROOT / path).read_text().strip()
+
+
+RENDERERS = {"sweep": _sweep, "replication": _replication, "arm": _arm, "arm-groups": _arm_groups,
+             "file": _file, "speed": _speed}
+
+
+def render(key: str) -> str:
+    kind, _, arg = key.partition(":")
+    if kind not in RENDERERS:
+        raise ValueError(f"generated block {key!r}: expected one of {', '.join(k + ':...' for k in RENDERERS)}")
+    return RENDERERS[kind](arg)
+
+
+def render_page(text: str) -> str:
+    """``text`` with every generated block rendered anew."""
+    return BLOCK.sub(lambda m: f"{m.group(1)}{render(m.group('key'))}\n{m.group(4)}", text)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--check", action="store_true", help="only compare: exit 1 if a page differs")
+    args = p.parse_args()
+    stale = []
+    for page in sorted(PAGES.glob("*.md")):
+        text = page.read_text()
+        new = render_page(text)
+        if new != text:
+            stale.append(page.relative_to(ROOT))
+            if not args.check:
+                page.write_text(new)
+    blocks = sum(len(BLOCK.findall(p.read_text())) for p in PAGES.glob("*.md"))
+    if args.check:
+        print(f"{len(stale)} of the pages with generated blocks differ from the committed results: "
+              + (", ".join(map(str, stale)) or "none") + f" ({blocks} blocks)")
+        return 1 if stale else 0
+    print(f"rendered {blocks} blocks; rewrote " + (", ".join(map(str, stale)) or "nothing"))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
