@@ -435,7 +435,11 @@ def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(
     assert "## Pendulum-v1: 1 episodes = 20 transitions per run" in md
     assert "## Pendulum-v1: 3 episodes = 60 transitions per run" in md
     assert "| softae | 2 |" in md and "swingup@horizon=2 return" not in md and "swingup return" in md
+    # the held-out baselines the records measured, as reference rows of each budget's table
+    identity = f"| *s' = s* | - | {rec['accuracy']['heldout_nmse_identity']:.3g} |"
+    assert md.count(identity) == 2 and md.count("| *predict the mean* | - |") == 2
     assert (results.parent / "plots" / "Pendulum-v1_60tr_mse_bars.png").exists()  # one figure per budget
+    assert (results.parent / "plots" / "Pendulum-v1_budgets.png").stat().st_size > 10_000  # every budget, every seed
 
 
 def test_a_replication_block_is_checked_before_any_run(tmp_path, capsys):

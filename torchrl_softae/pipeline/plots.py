@@ -21,7 +21,7 @@ from torchrl_softae.pipeline.records import is_finished, read_archive
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, atomic_savefig, run_dirs_below
 from torchrl_softae.tasks.base import metric_label
 
-__all__ = ["plot_run", "plot_comparison", "plot_report", "plot_path", "coverage_heatmaps"]
+__all__ = ["plot_run", "plot_comparison", "plot_report", "plot_path", "plot_budgets", "coverage_heatmaps"]
 
 
 def _plt():
@@ -369,6 +369,72 @@ def plot_report(report_json: str | Path, warn=None) -> list[Path]:
     for by_method, entry, (title, budget, seed_text), prefix in _budget_groups(records, warn, path):
         written += _comparison_bars(by_method, entry, title, budget, seed_text, out_dir, prefix)
     return written
+
+
+def plot_budgets(records: list[dict], out_dir: str | Path) -> list[Path]:
+    """One figure per env of replication records (:mod:`~torchrl_softae.pipeline.replication`):
+    against the exploration budget, the held-out normalized MSE, the coverage and each task's
+    zero-shot return and success metric; a thin line per seed (every seed visible), a thick one
+    for the mean over the seeds at each budget, one colour per method."""
+    plt = _plt()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    by_env = defaultdict(list)
+    for rec in records:
+        by_env[rec["env"]].append(rec)
+    for env, recs in sorted(by_env.items()):
+        labels = row_labels([r["config"] for r in recs])
+        runs = defaultdict(lambda: defaultdict(dict))  # label -> seed -> budget -> record
+        for rec, label in zip(recs, labels):
+            runs[label][rec["seed"]][rec["budget"]] = rec
+        tasks = sorted({t for r in recs for t in r["tasks"]})
+        metric = {t: next((r["tasks"][t].get("success_metric") for r in recs if t in r["tasks"]), None) for t in tasks}
+        # row 0: the model; row 1: each task's return; row 2: its success metric, under its return
+        cols = max(2, len(tasks))
+        grid = [[("held-out normalized MSE", lambda r: r["accuracy"]["heldout_nmse"]),
+                 ("coverage", lambda r: r["coverage"])],
+                [(f"{t} return", lambda r, t=t: r["tasks"][t]["mean_return"]) for t in tasks]]
+        if any(metric.values()):
+            grid.append([(f"{t} {metric_label(metric[t])}", lambda r, t=t: float(np.mean(
+                [m[metric[t]] for m in r["tasks"][t]["metrics"]]))) if metric[t] else None for t in tasks])
+        fig, axes = plt.subplots(len(grid), cols, figsize=(3.4 * cols, 2.8 * len(grid) + 0.6), squeeze=False)
+        placed = [(axes[i][j], panel) for i, row in enumerate(grid) for j, panel in enumerate(row) if panel]
+        for ax in axes.flat:
+            if not any(ax is a for a, _ in placed):
+                ax.axis("off")
+        for ax, (name, value) in placed:
+            for label in label_order(runs):
+                color = method_color(label)
+                for seed, per_budget in sorted(runs[label].items()):
+                    budgets = sorted(b for b, r in per_budget.items() if _has(value, r))
+                    ax.plot(budgets, [value(per_budget[b]) for b in budgets], "-", color=color, lw=0.8, alpha=0.35)
+                means = {}
+                for per_budget in runs[label].values():
+                    for b, r in per_budget.items():
+                        if _has(value, r):
+                            means.setdefault(b, []).append(value(r))
+                budgets = sorted(means)
+                ax.plot(budgets, [np.mean(means[b]) for b in budgets], "o-", color=color, lw=2, ms=4,
+                        label=f"{label} (n={max(len(v) for v in means.values()) if means else 0})")
+            ax.set_title(name, fontsize=9)
+            ax.set_xlabel("exploration episodes")
+            if "MSE" in name:
+                ax.set_yscale("log")
+        handles, names = axes[0][0].get_legend_handles_labels()
+        fig.legend(handles, names, loc="lower center", ncol=min(len(names), 6), fontsize=8)
+        fig.suptitle(f"{env}: against the exploration budget; thin lines: each seed, thick: the mean over seeds",
+                     fontsize=10)
+        written.append(_save(fig, out_dir / f"{env}_budgets.png", rect=(0, 0.06, 1, 0.97)))
+    return written
+
+
+def _has(value, record) -> bool:
+    try:
+        value(record)
+        return True
+    except KeyError:
+        return False
 
 
 def plot_path(path: str | Path, warn=None) -> list[Path]:

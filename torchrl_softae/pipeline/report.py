@@ -124,6 +124,15 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
         md += [f"## {env}: {episodes} episodes = {transitions} transitions per run", "",
                "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         md += [row["markdown"] for row in rows]
+        # the held-out baselines the records measured on the same set (s' = s, the set's mean): one
+        # value per set, so the first run's
+        accuracy = next((r["accuracy"] for rs in by_method.values() for r in rs
+                         if "heldout_nmse_identity" in r.get("accuracy", {})), None)
+        for name, suffix in (("s' = s", "_identity"), ("predict the mean", "_mean")) if accuracy else ():
+            values = [accuracy.get(f"heldout_nmse{suffix}"), *(accuracy.get(f"heldout_nmse{suffix}/{g}") for g in groups)]
+            cells = [f"*{name}*", "-", *(_fmt([v], 3) for v in values), "-"]
+            cells += ["-"] * (len(tasks) + sum(1 for t in tasks if metric_of[t]) + len(policy_tasks))
+            md.append("| " + " | ".join(cells) + " |")
         for name, per_task in refs.items():
             cells = [f"*{name}*", "-", "-", *["-"] * len(groups), "-"]
             for t in tasks:
@@ -173,6 +182,11 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
         written = plot_report(json_path, warn)
         warn(f"softae report: {sum(1 for r in finished if r.get('archived') or r.get('record'))} runs come from "
              "earlier reports or replication records, without their collected states: no coverage heatmaps")
+        records = [json.loads(Path(r["record"]).read_text()) for r in finished if r.get("record")]
+        if records:  # several budgets of one exploration: the curves against the budget, every seed
+            from torchrl_softae.pipeline.plots import plot_budgets
+
+            written += plot_budgets(records, root / "plots")
     elif plots and finished:
         from torchrl_softae.pipeline.plots import plot_comparison
 
