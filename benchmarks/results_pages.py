@@ -16,10 +16,6 @@ and ``KEY`` names what renders it:
   report from before reports archived their runs has only its tables: its ``report.md``'s);
 - ``replication:ENV``: ``softae report`` of the replication records in
   ``benchmarks/results/replication/ENV/`` (one table per budget);
-- ``arm:ENV``: the arm's multi-budget table from ``benchmarks/results/arm_v1/`` (``arm136_v1/``),
-  as ``benchmarks/replication_arm.py --table`` prints it;
-- ``arm-groups:ENV:BUDGET``: the arm's held-out nMSE by group of state dimensions at ``BUDGET``
-  episodes, beside the s' = s and predict-the-mean baselines;
 - ``file:PATH``: a table a benchmark script wrote to a committed file (e.g.
   ``benchmarks/results/sopra_eval.md``, by ``benchmarks/sopra_eval.py``);
 - ``speed:KIND[:TAG,...]``: the planning-speed targets of the records of a CPU kind, with each
@@ -73,41 +69,6 @@ def _replication(env: str) -> str:
     return _report_body(text)
 
 
-def _arm(env: str) -> str:
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import replication_arm
-
-    return replication_arm.table(env).strip()
-
-
-def _arm_groups(spec: str) -> str:
-    import numpy as np
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import replication_arm
-    from torchrl_softae.pipeline.methods import METHOD_NAMES
-
-    env, _, budget = spec.partition(":")
-    rows = [r for r in (json.loads(p.read_text()) for p in sorted(replication_arm.results_dir(env).glob("*.json")))
-            if r["episodes"] == int(budget)]
-    groups = [k.split("/", 1)[1] for k in rows[0]["accuracy"] if k.startswith("heldout_nmse/")]
-    keys = ["heldout_nmse", *(f"heldout_nmse/{g}" for g in groups)]
-
-    def pm(values):
-        v = np.asarray(values, dtype=float)
-        return f"{v.mean():.3g}" + (f" ± {v.std(ddof=1):.2g}" if len(v) > 1 else "")
-
-    out = ["| method | n | overall | " + " | ".join(g.replace("_", " ") for g in groups) + " |",
-           "|---|---|---|" + "---|" * len(groups)]
-    for name, suffix in (("s' = s", "_identity"), ("predict the mean", "_mean")):  # the same set: one value
-        out.append(f"| {name} | - | " + " | ".join(f"{rows[0]['accuracy'][k.replace('heldout_nmse', 'heldout_nmse' + suffix)]:.3g}"
-                                                  for k in keys) + " |")
-    for m in [m for m in METHOD_NAMES if any(r["method"] == m for r in rows)]:
-        rs = [r for r in rows if r["method"] == m]
-        out.append(f"| {m} | {len(rs)} | " + " | ".join(pm([r["accuracy"][k] for r in rs]) for k in keys) + " |")
-    return "\n".join(out)
-
-
 def _speed(spec: str) -> str:
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import speed_targets
@@ -125,8 +86,7 @@ def _file(path: str) -> str:
     return (ROOT / path).read_text().strip()
 
 
-RENDERERS = {"sweep": _sweep, "replication": _replication, "arm": _arm, "arm-groups": _arm_groups,
-             "file": _file, "speed": _speed}
+RENDERERS = {"sweep": _sweep, "replication": _replication, "file": _file, "speed": _speed}
 
 
 def render(key: str) -> str:

@@ -35,7 +35,7 @@ import numpy as np
 from scipy import stats
 
 ROOT = Path(__file__).resolve().parents[1]
-ARM = ROOT / "benchmarks" / "results" / "arm_v1"
+ARM = ROOT / "benchmarks" / "results" / "replication" / "SoftArm-v1"
 OUT_MD = ROOT / "docs" / "replication.md"
 OUT_JSON = ROOT / "benchmarks" / "results" / "replication" / "scorecard.json"
 ALPHA = 0.05
@@ -95,7 +95,7 @@ def _coverage(rs):
 
 
 def _final_mm(rs, task):
-    return [float(np.mean(r["tasks"][task]["final_error_mm"])) for r in rs]
+    return _task_metric(rs, task, "final_error_mm")
 
 
 def _less(a, b) -> float:

@@ -253,36 +253,6 @@ def test_a_run_from_before_a_new_config_field_resumes(tmp_path):
     assert len(RunDir(run).history()) == 2
 
 
-def test_result_histograms_pool_to_the_recorded_coverage_and_refuse_other_data(tmp_path, monkeypatch):
-    """The replication's results carry a tip histogram so its heatmaps outlive the run dirs: pooled
-    to the coverage grid it gives back the run's recorded coverage, and a histogram of other data
-    (another budget, or other cells) is refused."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import replication_arm as ra
-
-    for name, episodes in (("random-s0", 2), ("short", 1)):
-        assert main(_explore_argv(tmp_path / name, "random", episodes=episodes)) == 0
-    history = RunDir(tmp_path / "random-s0").load()["history"]
-    result = {"method": "random", "seed": 0, "episodes": 2, "transitions": 60, "history": history,
-              "config": {"heldout_size": 200}}
-    hist = ra.tip_histogram("Pendulum-v1", tmp_path / "random-s0", 200)
-    assert sum(map(sum, hist["counts"])) == 60 and hist["bins"] == 2 * ra.COVERAGE_BINS
-    assert ra.pooled_coverage(hist) == history[-1]["coverage"] > 0
-    ra.check_histogram(result, hist)
-    with pytest.raises(ValueError, match="not the same data"):
-        ra.check_histogram(result, ra.tip_histogram("Pendulum-v1", tmp_path / "short", 200))
-    moved = {**hist, "counts": [[0] * 40 for _ in range(40)]}
-    moved["counts"][0][0] = 60  # same transitions, other cells
-    with pytest.raises(ValueError, match="not the same data"):
-        ra.check_histogram(result, moved)
-    # the heatmaps are drawn from the results alone
-    monkeypatch.setattr(ra, "results_dir", lambda env: tmp_path / "results" / "pendulum")
-    (tmp_path / "results" / "pendulum").mkdir(parents=True)
-    (tmp_path / "results" / "pendulum" / "random-s0-ep2.json").write_text(json.dumps({**result, "tip_histogram": hist}))
-    path = ra.plot_coverage("Pendulum-v1", 2)
-    assert path.name == "Pendulum-v1_tip_coverage_2ep.png" and path.stat().st_size > 1000
-
-
 def test_heldout_set_is_built_once_and_says_so(tmp_path, monkeypatch):
     """A build (minutes on the arm) is announced with its size and cache path; a cached read is silent
     and returns the same transitions."""

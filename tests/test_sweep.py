@@ -423,6 +423,17 @@ def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(
     assert "heldout_nmse_identity" in rec["accuracy"] and rec["coverage"] == rec["history"][-1]["coverage"]
     assert len(rec["tasks"]["swingup"]["returns"]) == 1 and len(rec["tasks"]["spin"]["returns"]) == 2
     assert rec["tasks"]["swingup"]["planner_horizon"] == 2
+    # the explored data's histogram on the coverage grid pools back to the recorded coverage, and one
+    # of other data is refused
+    from torchrl_softae.pipeline.replication import HISTOGRAM_BINS, check_histogram, pooled_coverage
+
+    hist = rec["coverage_histogram"]
+    assert hist["bins"] == HISTOGRAM_BINS and sum(map(sum, hist["counts"])) == 20 == hist["transitions"]
+    assert pooled_coverage(hist) == rec["coverage"] > 0
+    moved = {**hist, "counts": [[0] * HISTOGRAM_BINS for _ in range(HISTOGRAM_BINS)]}
+    moved["counts"][0][0] = 20  # the same transitions, other cells
+    with pytest.raises(ValueError, match="not the same data"):
+        check_histogram(moved, rec["history"])
     assert rec["tasks"]["swingup"]["success_metric"] == "upright_fraction_last_half"
     # the budget-3 record continues the budget-1 run: same first episode
     late = json.loads((results / "softae-b2-s1-ep3.json").read_text())
@@ -440,6 +451,7 @@ def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(
     assert md.count(identity) == 2 and md.count("| *predict the mean* | - |") == 2
     assert (results.parent / "plots" / "Pendulum-v1_60tr_mse_bars.png").exists()  # one figure per budget
     assert (results.parent / "plots" / "Pendulum-v1_budgets.png").stat().st_size > 10_000  # every budget, every seed
+    assert (results.parent / "plots" / "Pendulum-v1_coverage_3ep.png").exists()  # from the records' histograms
 
 
 def test_a_replication_block_is_checked_before_any_run(tmp_path, capsys):

@@ -21,7 +21,8 @@ from torchrl_softae.pipeline.records import is_finished, read_archive
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, atomic_savefig, run_dirs_below
 from torchrl_softae.tasks.base import metric_label
 
-__all__ = ["plot_run", "plot_comparison", "plot_report", "plot_path", "plot_budgets", "coverage_heatmaps"]
+__all__ = ["plot_run", "plot_comparison", "plot_report", "plot_path", "plot_budgets", "plot_record_coverage",
+           "coverage_heatmaps"]
 
 
 def _plt():
@@ -421,11 +422,48 @@ def plot_budgets(records: list[dict], out_dir: str | Path) -> list[Path]:
             ax.set_xlabel("exploration episodes")
             if "MSE" in name:
                 ax.set_yscale("log")
+                identity = next((r["accuracy"]["heldout_nmse_identity"] for r in recs
+                                 if "heldout_nmse_identity" in r["accuracy"]), None)
+                if identity is not None:  # the same held-out set for every record of the env
+                    ax.axhline(identity, color="0.4", ls="--", lw=1, label="s' = s (no change)")
         handles, names = axes[0][0].get_legend_handles_labels()
         fig.legend(handles, names, loc="lower center", ncol=min(len(names), 6), fontsize=8)
         fig.suptitle(f"{env}: against the exploration budget; thin lines: each seed, thick: the mean over seeds",
                      fontsize=10)
         written.append(_save(fig, out_dir / f"{env}_budgets.png", rect=(0, 0.06, 1, 0.97)))
+    return written
+
+
+def plot_record_coverage(records: list[dict], out_dir: str | Path) -> list[Path]:
+    """Per env and budget of replication records that carry a coverage histogram: one heatmap per
+    method (transitions per cell, averaged over its seeds so methods with different seed counts
+    compare) on the env's grid, one colour scale; drawn from the records alone."""
+    out_dir = Path(out_dir)
+    groups = defaultdict(list)
+    for rec in records:
+        if "coverage_histogram" in rec:
+            groups[(rec["env"], rec["budget"], rec["transitions"])].append(rec)
+    written = []
+    for (env, budget, transitions), recs in sorted(groups.items()):
+        first = recs[0]["coverage_histogram"]
+        if any(r["coverage_histogram"]["bounds"] != first["bounds"] for r in recs):
+            raise ValueError(f"{env}, {budget} episodes: coverage histograms on different grids (other held-out sets)")
+        by_label = defaultdict(list)
+        for rec, label in zip(recs, row_labels([r["config"] for r in recs])):
+            by_label[label].append(rec)
+        counts = {}
+        for label in label_order(by_label):
+            rs = sorted(by_label[label], key=lambda r: r["seed"])
+            counts[f"{label} (seed{'s' * (len(rs) > 1)} {','.join(str(r['seed']) for r in rs)}; "
+                   f"cov. {np.mean([r['coverage'] for r in rs]):.2f})"] = np.mean(
+                [np.asarray(r["coverage_histogram"]["counts"]) for r in rs], 0)
+        (x0, y0), (x1, y1) = first["bounds"]
+        edges = [np.linspace(x0, x1, first["bins"] + 1), np.linspace(y0, y1, first["bins"] + 1)]
+        out_dir.mkdir(parents=True, exist_ok=True)
+        written.append(coverage_heatmaps(
+            counts, edges, first["labels"], f"{env}: where the explored data lies after {budget} episodes "
+            f"({transitions} transitions per seed)\ngrid: the held-out set's range; edge cells also hold what "
+            "lies beyond", out_dir / f"{env}_coverage_{budget}ep.png", unit="transitions per cell (mean over seeds)"))
     return written
 
 

@@ -1,8 +1,9 @@
 """Replications: one exploration evaluated at several budgets, as a sweep file's ``replication``
 block says; one JSON record per (env, method, seed, budget) that holds everything a reader needs
 later without the run dir: the run's full config, the commit and machine that ran it, held-out
-accuracy overall and by group (with the s' = s and predict-the-mean baselines), coverage, the
-per-episode history, and per task the returns, success metrics and the planner horizon used.
+accuracy overall and by group (with the s' = s and predict-the-mean baselines), coverage and the
+histogram of the explored data on the env's coverage grid (heatmaps drawn from the records alone),
+the per-episode history, and per task the returns, success metrics and the planner horizon used.
 
 Sweep file::
 
@@ -24,12 +25,16 @@ import time
 from pathlib import Path
 
 from torchrl_softae.pipeline.config import ConfigError
+from torchrl_softae.pipeline.data import COVERAGE_BINS
 from torchrl_softae.pipeline.records import REPLICATION_KIND
 
-__all__ = ["REPLICATION_KIND", "REPLICATION_KEYS", "check_block", "record_path", "missing_budgets", "run_budgets",
-           "code_version", "machine"]
+__all__ = ["REPLICATION_KIND", "REPLICATION_KEYS", "HISTOGRAM_BINS", "check_block", "record_path", "missing_budgets",
+           "run_budgets", "code_version", "machine", "coverage_histogram", "pooled_coverage", "check_histogram"]
 
 REPLICATION_KEYS = ("budgets", "results", "task_episodes")
+#: cells per axis of a record's coverage histogram: twice the coverage metric's, so pooling 2 x 2
+#: cells gives back the recorded coverage (checked before a record is written)
+HISTOGRAM_BINS = 2 * COVERAGE_BINS
 
 
 def check_block(spec: dict, cfg, evaluate: dict | None) -> dict | None:
@@ -103,6 +108,41 @@ def machine() -> dict:
                         (amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel)}}
 
 
+def coverage_histogram(cfg, run_dir: Path) -> dict:
+    """Transitions per cell of the env's coverage grid (its projection, e.g. the arm's tip x-z) of
+    every transition ``run_dir`` holds, at :data:`HISTOGRAM_BINS` cells per axis."""
+    from torchrl_softae.pipeline.catalog import run_entry
+    from torchrl_softae.pipeline.data import ModelAccuracy, coverage_counts, projection_bounds
+    from torchrl_softae.pipeline.runs import RunDir
+
+    entry, run = run_entry(cfg), RunDir(run_dir)
+    rb = run.load_replay_buffer(run.load())
+    bounds = projection_bounds(entry, ModelAccuracy(entry, run, cfg.heldout_size).heldout)
+    counts = coverage_counts(entry, rb.storage[: len(rb)], bounds, HISTOGRAM_BINS)
+    return {"bins": HISTOGRAM_BINS, "bounds": bounds.tolist(), "labels": list(entry.projection_labels),
+            "transitions": len(rb), "counts": counts.tolist()}
+
+
+def pooled_coverage(histogram: dict) -> float:
+    """The coverage metric (the share of visited cells of the ``COVERAGE_BINS`` grid) of a histogram."""
+    import numpy as np
+
+    c = np.asarray(histogram["counts"])
+    k = histogram["bins"] // COVERAGE_BINS
+    pooled = c.reshape(COVERAGE_BINS, k, COVERAGE_BINS, k).sum((1, 3))
+    return float((pooled > 0).sum()) / COVERAGE_BINS**2
+
+
+def check_histogram(histogram: dict, history: list[dict]) -> None:
+    """A histogram belongs to a run's history only if it holds its transitions and gives back its
+    recorded coverage."""
+    want = history[-1]
+    if histogram["transitions"] != want["transitions"] or abs(pooled_coverage(histogram) - want["coverage"]) > 1e-9:
+        raise ValueError(f"coverage histogram of {histogram['transitions']} transitions with coverage "
+                         f"{pooled_coverage(histogram):.4f}, the run's history {want['transitions']} with "
+                         f"{want['coverage']:.4f}: not the same data")
+
+
 def run_budgets(trial, cfg, on_episode=None) -> list[dict]:
     """Explore ``trial``'s run to each budget that has no record yet, evaluate it there and write
     its record; returns the run's history (the last budget's). A budget the run already went past cannot be
@@ -127,10 +167,13 @@ def run_budgets(trial, cfg, on_episode=None) -> list[dict]:
                            progress=False, planner_overrides=overrides)
         accuracy = {k: v for k, v in res.items() if k.startswith("heldout_")}
         tasks = {name: {**r, "planner_horizon": r["planner"]["horizon"]} for name, r in res["tasks"].items()}
+        histogram = coverage_histogram(cfg_b, trial.run_dir)
+        check_histogram(histogram, history)
         record = {
             "kind": REPLICATION_KIND, "env": cfg.env, "method": cfg.method, "seed": cfg.seed, "budget": budget,
             "transitions": history[-1]["transitions"], "config": cfg_b.to_dict(), "code": code_version(),
-            "machine": machine(), "accuracy": accuracy, "coverage": history[-1]["coverage"], "tasks": tasks,
+            "machine": machine(), "accuracy": accuracy, "coverage": history[-1]["coverage"],
+            "coverage_histogram": histogram, "tasks": tasks,
             "seconds": {"explore": sum(r["collect_seconds"] + r["train_seconds"] for r in history),
                         "evaluate": time.perf_counter() - t0},
             "history": history,

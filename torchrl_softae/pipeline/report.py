@@ -180,13 +180,15 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
 
         # archived runs keep their histories and evaluations, not their collected states
         written = plot_report(json_path, warn)
-        warn(f"softae report: {sum(1 for r in finished if r.get('archived') or r.get('record'))} runs come from "
-             "earlier reports or replication records, without their collected states: no coverage heatmaps")
+        n_archived = sum(1 for r in finished if r.get("archived"))
+        if n_archived:  # (replication records carry a histogram of their data instead)
+            warn(f"softae report: {n_archived} runs come from earlier reports, without their collected states: "
+                 "no coverage heatmaps")
         records = [json.loads(Path(r["record"]).read_text()) for r in finished if r.get("record")]
         if records:  # several budgets of one exploration: the curves against the budget, every seed
-            from torchrl_softae.pipeline.plots import plot_budgets
+            from torchrl_softae.pipeline.plots import plot_budgets, plot_record_coverage
 
-            written += plot_budgets(records, root / "plots")
+            written += plot_budgets(records, root / "plots") + plot_record_coverage(records, root / "plots")
     elif plots and finished:
         from torchrl_softae.pipeline.plots import plot_comparison
 
