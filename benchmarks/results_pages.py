@@ -1,6 +1,6 @@
 """The results pages' tables, rendered from the committed results (never copied by hand).
 
-    python benchmarks/results_pages.py           # rewrites every generated block of docs/results/*.md
+    python benchmarks/results_pages.py           # rewrites every generated block of docs/results/*.md and README.md
     python benchmarks/results_pages.py --check   # exit 1 naming each block that differs
 
 A page marks each block it does not write by hand:
@@ -18,6 +18,8 @@ and ``KEY`` names what renders it:
   ``benchmarks/results/replication/ENV/`` (one table per budget);
 - ``file:PATH``: a table a benchmark script wrote to a committed file (e.g.
   ``benchmarks/results/sopra_eval.md``, by ``benchmarks/sopra_eval.py``);
+- ``scorecard``: the judged claims of ``benchmarks/results/replication/scorecard.json`` (claim,
+  paper, ours, verdict) and the ids still untested, for the README;
 - ``speed:KIND[:TAG,...]``: the planning-speed targets of the records of a CPU kind, with each
   value's range over the runs ``TAG`` (``benchmarks/speed_targets.py``).
 """
@@ -33,6 +35,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = ROOT / "docs" / "results"
+#: the pages with generated blocks: every results page and the README (its results table)
 BLOCK = re.compile(r"(<!-- generated: (?P<key>[^ ]+) -->\n)(?P<body>.*?)(<!-- end generated -->)", re.S)
 
 
@@ -82,11 +85,25 @@ def _speed(spec: str) -> str:
     return table.split("\n", 1)[1].strip()  # the page has its own heading
 
 
+def _scorecard(_: str) -> str:
+    rows = json.loads((ROOT / "benchmarks" / "results" / "replication" / "scorecard.json").read_text())["claims"]
+    out = ["| claim | paper | ours | verdict |", "|---|---|---|---|"]
+    for r in rows:
+        if r["verdict"] != "untested":
+            p = "" if r["p"] is None else (f", p = {r['p']:.2g}" if r["p"] >= 1e-3 else ", p < 0.001")
+            cells = [f"{r['id']} {r['claim']}", r["paper"], f"{r['ours']}{p}", f"**{r['verdict']}**"]
+            out.append("| " + " | ".join(str(c).replace("|", "/") for c in cells) + " |")
+    untested = [r["id"] for r in rows if r["verdict"] == "untested"]
+    if untested:
+        out += ["", f"Untested so far, each with the runs and CPU-hours it needs in the scorecard: {', '.join(untested)}."]
+    return "\n".join(out)
+
+
 def _file(path: str) -> str:
     return (ROOT / path).read_text().strip()
 
 
-RENDERERS = {"sweep": _sweep, "replication": _replication, "file": _file, "speed": _speed}
+RENDERERS = {"sweep": _sweep, "replication": _replication, "scorecard": _scorecard, "file": _file, "speed": _speed}
 
 
 def render(key: str) -> str:
@@ -101,19 +118,23 @@ def render_page(text: str) -> str:
     return BLOCK.sub(lambda m: f"{m.group(1)}{render(m.group('key'))}\n{m.group(4)}", text)
 
 
+def pages() -> list[Path]:
+    return [*sorted(PAGES.glob("*.md")), ROOT / "README.md"]
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--check", action="store_true", help="only compare: exit 1 if a page differs")
     args = p.parse_args()
     stale = []
-    for page in sorted(PAGES.glob("*.md")):
+    for page in pages():
         text = page.read_text()
         new = render_page(text)
         if new != text:
             stale.append(page.relative_to(ROOT))
             if not args.check:
                 page.write_text(new)
-    blocks = sum(len(BLOCK.findall(p.read_text())) for p in PAGES.glob("*.md"))
+    blocks = sum(len(BLOCK.findall(p.read_text())) for p in pages())
     if args.check:
         print(f"{len(stale)} of the pages with generated blocks differ from the committed results: "
               + (", ".join(map(str, stale)) or "none") + f" ({blocks} blocks)")
