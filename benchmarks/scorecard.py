@@ -349,7 +349,8 @@ def markdown(rows: list[dict]) -> str:
     lines = ["# Replication scorecard", "",
              "The paper's 18 claims, each with a verdict decided by the rules in `benchmarks/scorecard.py`, "
              "fixed there before the H-UCRL seeds that C2-C5 wait for finished (C1 and C6 are judged on runs "
-             "that had finished by then). Regenerate with `python benchmarks/scorecard.py`; the same rows are "
+             "that had finished by then) and, for the SoPrA twin (C14-C16, C18's twin part), before any of its "
+             "runs at the paper's settings had finished (commit d821389). Regenerate with `python benchmarks/scorecard.py`; the same rows are "
              "in `benchmarks/results/replication/scorecard.json`.", "",
              f"Rules: paper settings only; >= {MIN_SEEDS} seeds of each compared method (3 of Mean-AE and PETS-AE); "
              f"one-sided Welch t-tests at alpha = {ALPHA} (p: the largest of a claim's tests); a reaching task "
