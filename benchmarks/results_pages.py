@@ -28,9 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,19 +54,15 @@ def _sweep(name: str) -> str:
     archive = ROOT / "benchmarks" / "results" / "sweeps" / name / "report.json"
     if "runs" not in json.loads(archive.read_text()):
         return _report_body(archive.with_suffix(".md").read_text())
-    with tempfile.TemporaryDirectory() as tmp:
-        text, *_ = report(Path(tmp) / "report", plots=False, warn=lambda m: None, merge=[archive])
+    text, *_ = report(archive.parent / "merged", plots=False, warn=lambda m: None, merge=[archive], write=False)
     return _report_body(text)
 
 
 def _replication(env: str) -> str:
     from torchrl_softae.pipeline.report import report
 
-    records = ROOT / "benchmarks" / "results" / "replication" / env
-    with tempfile.TemporaryDirectory() as tmp:
-        copy = Path(tmp) / env
-        shutil.copytree(records, copy)
-        text, *_ = report(copy, plots=False, warn=lambda m: None)
+    text, *_ = report(ROOT / "benchmarks" / "results" / "replication" / env, plots=False, warn=lambda m: None,
+                      write=False)
     return _report_body(text)
 
 

@@ -284,10 +284,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         engine = self.world_model.engine
         prev_dtype, prev_check = self._plan_dtype, self._check_actions
         # "auto": bf16 only where it measures faster for this ensemble on this machine
-        if precision == "auto":
-            self._plan_dtype = engine.auto_planning_dtype() if engine is not None else None
-        else:
-            self._plan_dtype = resolve_planning_dtype(precision)
+        self._plan_dtype = engine.auto_planning_dtype() if precision == "auto" else resolve_planning_dtype(precision)
         self._check_actions = False
         try:
             yield
@@ -357,7 +354,7 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
         """The engine's rollout that scores this plan (``"deterministic"``: one particle, no noise;
         ``"sampled"``: trajectory sampling with particles), or ``None``: TorchRL's step path."""
         engine = self.world_model.engine
-        if engine is None or not engine.rollouts:
+        if not engine.rollouts:
             return None
         if self.deterministic and particles == 1:
             return "deterministic"

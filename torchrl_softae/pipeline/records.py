@@ -94,5 +94,5 @@ def replication_records(root: str | Path) -> list[dict]:
         out.append({"run_dir": str(path.with_suffix("")), "config": rec["config"], "env": rec["env"],
                     "method": rec["method"], "seed": rec["seed"], "episodes_target": rec["budget"],
                     "episodes_done": rec["budget"], "history": rec["history"], "evals": rec["tasks"],
-                    "policies": {}, "record": str(path), "accuracy": rec["accuracy"], **_progress(rec["history"])})
+                    "policies": {}, "record": str(path), "replication": rec, **_progress(rec["history"])})
     return out

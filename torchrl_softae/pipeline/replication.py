@@ -112,12 +112,12 @@ def coverage_histogram(cfg, run_dir: Path) -> dict:
     """Transitions per cell of the env's coverage grid (its projection, e.g. the arm's tip x-z) of
     every transition ``run_dir`` holds, at :data:`HISTOGRAM_BINS` cells per axis."""
     from torchrl_softae.pipeline.catalog import run_entry
-    from torchrl_softae.pipeline.data import ModelAccuracy, coverage_counts, projection_bounds
+    from torchrl_softae.pipeline.data import coverage_counts, heldout_set, projection_bounds
     from torchrl_softae.pipeline.runs import RunDir
 
     entry, run = run_entry(cfg), RunDir(run_dir)
     rb = run.load_replay_buffer(run.load())
-    bounds = projection_bounds(entry, ModelAccuracy(entry, run, cfg.heldout_size).heldout)
+    bounds = projection_bounds(entry, heldout_set(entry, run, cfg.heldout_size))
     counts = coverage_counts(entry, rb.storage[: len(rb)], bounds, HISTOGRAM_BINS)
     return {"bins": HISTOGRAM_BINS, "bounds": bounds.tolist(), "labels": list(entry.projection_labels),
             "transitions": len(rb), "counts": counts.tolist()}

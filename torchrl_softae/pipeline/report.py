@@ -40,11 +40,13 @@ def _fmt(values, digits: int = 4) -> str:
     return m + (f" ± {v.std(ddof=1):.2g}" if len(v) > 1 else "")  # the sample std over the seeds
 
 
-def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple = ()) -> tuple[str, Path, Path, list]:
+def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple = (),
+           write: bool = True) -> tuple[str, Path | None, Path | None, list]:
     """Build the tables (markdown + JSON) and plots; returns ``(markdown, json path, md path, plots)``.
 
     ``merge``: earlier ``report.json`` files whose archived runs join the runs below ``root``; a
-    run dir below ``root`` replaces an archived run of the same ``ENV/NAME`` (it is newer)."""
+    run dir below ``root`` replaces an archived run of the same ``ENV/NAME`` (it is newer).
+    ``write=False``: only the markdown, nothing written below ``root`` (no JSON, no plots)."""
     from torchrl_softae.pipeline.catalog import env_ids, get_env_entry, heldout_note
 
     warn = warn or (lambda m: print(m, file=sys.stderr))
@@ -126,8 +128,8 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
         md += [row["markdown"] for row in rows]
         # the held-out baselines the records measured on the same set (s' = s, the set's mean): one
         # value per set, so the first run's
-        accuracy = next((r["accuracy"] for rs in by_method.values() for r in rs
-                         if "heldout_nmse_identity" in r.get("accuracy", {})), None)
+        accuracy = next((r["replication"]["accuracy"] for rs in by_method.values() for r in rs
+                         if "heldout_nmse_identity" in r.get("replication", {}).get("accuracy", {})), None)
         for name, suffix in (("s' = s", "_identity"), ("predict the mean", "_mean")) if accuracy else ():
             values = [accuracy.get(f"heldout_nmse{suffix}"), *(accuracy.get(f"heldout_nmse{suffix}/{g}") for g in groups)]
             cells = [f"*{name}*", "-", *(_fmt([v], 3) for v in values), "-"]
@@ -162,6 +164,8 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
                "episodes" for r in unfinished]
         md.append("")
     text = "\n".join(md)
+    if not write:
+        return text, None, None, []
     root.mkdir(parents=True, exist_ok=True)
     md_path, json_path = root / "report.md", root / "report.json"
     atomic_write_text(md_path, text)
@@ -184,7 +188,7 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
         if n_archived:  # (replication records carry a histogram of their data instead)
             warn(f"softae report: {n_archived} runs come from earlier reports, without their collected states: "
                  "no coverage heatmaps")
-        records = [json.loads(Path(r["record"]).read_text()) for r in finished if r.get("record")]
+        records = [r["replication"] for r in finished if "replication" in r]
         if records:  # several budgets of one exploration: the curves against the budget, every seed
             from torchrl_softae.pipeline.plots import plot_budgets, plot_record_coverage
 
