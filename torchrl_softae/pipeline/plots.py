@@ -407,14 +407,12 @@ def plot_budgets(records: list[dict], out_dir: str | Path) -> list[Path]:
         for ax, (name, value) in placed:
             for label in label_order(runs):
                 color = method_color(label)
+                means = {}  # budget -> every seed's value there
                 for seed, per_budget in sorted(runs[label].items()):
-                    budgets = sorted(b for b, r in per_budget.items() if _has(value, r))
-                    ax.plot(budgets, [value(per_budget[b]) for b in budgets], "-", color=color, lw=0.8, alpha=0.35)
-                means = {}
-                for per_budget in runs[label].values():
-                    for b, r in per_budget.items():
-                        if _has(value, r):
-                            means.setdefault(b, []).append(value(r))
+                    values = {b: v for b, r in sorted(per_budget.items()) if (v := _value(value, r)) is not None}
+                    ax.plot(list(values), list(values.values()), "-", color=color, lw=0.8, alpha=0.35)
+                    for b, v in values.items():
+                        means.setdefault(b, []).append(v)
                 budgets = sorted(means)
                 ax.plot(budgets, [np.mean(means[b]) for b in budgets], "o-", color=color, lw=2, ms=4,
                         label=f"{label} (n={max(len(v) for v in means.values()) if means else 0})")
@@ -467,12 +465,12 @@ def plot_record_coverage(records: list[dict], out_dir: str | Path) -> list[Path]
     return written
 
 
-def _has(value, record) -> bool:
+def _value(value, record):
+    """``value(record)``, or ``None`` where the record lacks it (a task it did not evaluate)."""
     try:
-        value(record)
-        return True
+        return value(record)
     except KeyError:
-        return False
+        return None
 
 
 def plot_path(path: str | Path, warn=None) -> list[Path]:
