@@ -225,12 +225,78 @@ def test_the_twin_claims_follow_their_rules(tmp_path, monkeypatch):
     assert rows["C15"]["verdict"] == "partly" and "comparable: no" in rows["C15"]["why"]  # H-UCRL 7 mm off on (ix)
     assert rows["C16"]["verdict"] == "fails"  # Random tracks the lemniscate better
     arm = {"verdict": "holds", "ours": "ratio 0.46", "n": "5 / 5", "settings": "arm", "p": 0.001}
-    c18 = scorecard.c18(arm, scorecard.sopra_results())
+    c18 = scorecard.c18(arm, scorecard.sopra_results(), {})
     assert c18["verdict"] == "partly" and "judged on 2 of 4 robots" in c18["why"] and c18["p"] < 0.05
     for f in tmp_path.glob("hucrl-*"):
         f.unlink()
     rows = scorecard.sopra_claims(scorecard.sopra_results())
     assert all(r["verdict"] == "untested" and "3 of hucrl (has 0)" in r["why"] for r in rows)
+
+
+def _locomotion_record(env, method, seed, returns: dict, nmse, horizon, references: dict):
+    """A fish or leg replication record with the given per-episode task returns."""
+    return {"env": env, "method": method, "seed": seed, "budget": 50, "accuracy": {"heldout_nmse": nmse},
+            "config": {"model": {"num_cells": 256, "depth": 4}, "train": {"lr": 5e-5},
+                       "planner": {"num_candidates": 200, "horizon": horizon}},
+            "tasks": {t: {"returns": r} for t, r in returns.items()},
+            "references": {"episodes": 2, "seed": 0, "returns": references},
+            "seconds": {"explore": 3600.0, "evaluate": 360.0}}
+
+
+def test_the_fish_and_leg_claims_follow_their_rules(tmp_path, monkeypatch):
+    """C8-C13 and C18's fish and leg parts, judged on records whose outcome is known: the gap from
+    the better model-free reference to the best method decides "fails" and "on par"."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import scorecard
+
+    monkeypatch.setattr(scorecard, "RESULTS", tmp_path)
+    monkeypatch.setitem(scorecard.LOCOMOTION, "SoftFish-v0", ("fish.yaml", 50, 200, 10, "fish"))
+    monkeypatch.setitem(scorecard.LOCOMOTION, "SoftFishTarget-v0", ("fish_target.yaml", 50, 200, 100, "target"))
+    monkeypatch.setitem(scorecard.LOCOMOTION, "MSKLeg-v0", ("leg.yaml", 50, 500, 100, "leg"))
+    # env -> (horizon, references, task -> method -> level)
+    cases = {
+        "SoftFish-v0": (10, {"zero": {"forward": [0.0], "backward": [0.0]},
+                             "random": {"forward": [10.0, 10.0], "backward": [10.0, 10.0]}},
+                        {"forward": {"softae": 95, "random": 60, "hucrl": 100},      # on par: 5 < 0.1 x 90 below
+                         "backward": {"softae": 50, "random": 45, "hucrl": 20}}),    # H-UCRL closes 0.25
+        "SoftFishTarget-v0": (100, {"zero": {"to-target": [-300.0], "from-target": [200.0]},
+                                    "random": {"to-target": [-320.0], "from-target": [150.0]}},
+                              {"to-target": {"softae": -100, "random": -250, "hucrl": -150},   # Random closes 0.25
+                               "from-target": {"softae": 300, "random": 250, "hucrl": 280}}),  # nobody fails
+        "MSKLeg-v0": (100, {"zero": {"ccw": [0.0], "cw": [0.0]}, "random": {"ccw": [-1.0], "cw": [-1.0]}},
+                      {"ccw": {"softae": 10, "random": 5, "hucrl": 30},       # SoftAE 20 below H-UCRL: short
+                       "cw": {"softae": -5, "random": -6, "hucrl": -4}}),     # nobody beats no control
+    }
+    noise = [0.0, 1.0, -1.0, 0.5, -0.5]
+    nmse = {"softae": 0.1, "random": 0.3, "hucrl": 0.5}
+    for env, (horizon, refs, levels) in cases.items():
+        (tmp_path / env).mkdir()
+        for method in ("softae", "random", "hucrl"):
+            for seed, e in enumerate(noise):
+                returns = {t: [lv[method] + e, lv[method] - e / 2] for t, lv in levels.items()}
+                rec = _locomotion_record(env, method, seed, returns, nmse[method] + 0.01 * e, horizon, refs)
+                (tmp_path / env / f"{method}-s{seed}-ep50.json").write_text(json.dumps(rec))
+    results = {env: scorecard.locomotion_results(env) for env in cases}
+    rows = {r["id"]: r for r in scorecard.locomotion_claims(results)}
+    assert rows["C8"]["verdict"] == "holds" and "SoftAE vs H-UCRL: on par" in rows["C8"]["why"]
+    assert rows["C8"]["n"] == "5 / 5 / 5" and "reference 10" in rows["C8"]["ours"]  # the better reference
+    assert rows["C9"]["verdict"] == "holds" and "H-UCRL 0.25" in rows["C9"]["ours"] and rows["C9"]["p"] < 0.05
+    assert rows["C10"]["verdict"] == "holds" and "fails: Random yes" in rows["C10"]["why"]
+    assert rows["C11"]["verdict"] == "fails" and "fails: H-UCRL no, Random no" in rows["C11"]["why"]
+    assert rows["C12"]["verdict"] == "fails" and "SoftAE vs H-UCRL: short" in rows["C12"]["why"]
+    assert rows["C13"]["verdict"] == "partly" and rows["C13"]["p"] == 1.0  # everyone fails, none significantly
+    assert all("MuJoCo proxy" in r["why"] for r in rows.values())
+    arm = {"verdict": "holds", "ours": "ratio 0.46", "n": "5 / 5", "settings": "arm", "p": 0.001}
+    c18 = scorecard.c18(arm, {}, results)
+    assert c18["verdict"] == "partly" and "judged on 3 of 4 robots" in c18["why"] and "SoPrA twin" in c18["why"]
+    assert "SoftFishTarget-v0 ratio 0.33" in c18["ours"]
+    # a missing seed makes the env's claims untested, priced by the records' measured hours
+    (tmp_path / "MSKLeg-v0" / "random-s4-ep50.json").unlink()
+    results["MSKLeg-v0"] = scorecard.locomotion_results("MSKLeg-v0")
+    rows = {r["id"]: r for r in scorecard.locomotion_claims(results)}
+    assert rows["C12"]["verdict"] == rows["C13"]["verdict"] == "untested"
+    assert "1 of random (has 4): about 1 CPU-hours" in rows["C12"]["why"]
+    assert "measured by the finished runs" in rows["C12"]["why"]
 
 
 def test_the_results_pages_are_what_the_committed_results_give():

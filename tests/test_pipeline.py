@@ -172,6 +172,17 @@ def test_sweep_file_expands_to_grid(capsys):
     assert not any("--beta" in line for line in lines if "--method=softae" not in line)
 
 
+def test_every_committed_sweep_file_is_valid(tmp_path, capsys):
+    """Each sweep under sweeps/ expands and passes every check a run would make first (config, the
+    evaluate and replication blocks): a typo costs a test, not hours of replication runs."""
+    root = Path(__file__).resolve().parents[1]
+    files = sorted((root / "sweeps").rglob("*.yaml"))
+    assert len(files) >= 12
+    for f in files:
+        assert main(["sweep", str(f), "--root", str(tmp_path / f.stem), "--dry-run"]) == 0, f
+        assert "softae explore" in capsys.readouterr().out, f
+
+
 def test_softae_covers_more_than_random(tmp_path):
     """From a hanging start, active exploration visits far more of the (angle, velocity) plane
     than random torques, which cannot pump the pendulum over the top."""

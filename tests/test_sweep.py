@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -401,7 +402,7 @@ def test_report_merges_the_runs_archived_in_an_earlier_report(tmp_path, capsys):
 
 
 REPLICATION = TINY.replace("evaluate: {tasks: [swingup], episodes: 1, planner: {horizon: 2}, references: true}",
-             "evaluate: {tasks: [swingup, spin], episodes: 1, planner: {horizon: 2}}\n"
+             "evaluate: {tasks: [swingup, spin], episodes: 1, planner: {horizon: 2}, references: true}\n"
              "replication: {budgets: [1, 3], results: RESULTS, task_episodes: {spin: 2}}")
 
 
@@ -423,6 +424,13 @@ def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(
     assert "heldout_nmse_identity" in rec["accuracy"] and rec["coverage"] == rec["history"][-1]["coverage"]
     assert len(rec["tasks"]["swingup"]["returns"]) == 1 and len(rec["tasks"]["spin"]["returns"]) == 2
     assert rec["tasks"]["swingup"]["planner_horizon"] == 2
+    # the model-free references on the same episodes, with the record
+    from torchrl_softae.pipeline.evaluate import reference_returns
+
+    refs = rec["references"]["returns"]
+    assert sorted(refs) == ["no control (zero action)", "random actions, no model"]
+    assert refs["no control (zero action)"]["swingup"] == reference_returns("Pendulum-v1", "swingup", "zero", 1, 0)
+    assert len(refs["random actions, no model"]["spin"]) == 2 and rec["references"]["task_episodes"] == {"spin": 2}
     # the explored data's histogram on the coverage grid pools back to the recorded coverage, and one
     # of other data is refused
     from torchrl_softae.pipeline.replication import HISTOGRAM_BINS, check_histogram, pooled_coverage
@@ -449,6 +457,8 @@ def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(
     # the held-out baselines the records measured, as reference rows of each budget's table
     identity = f"| *s' = s* | - | {rec['accuracy']['heldout_nmse_identity']:.3g} |"
     assert md.count(identity) == 2 and md.count("| *predict the mean* | - |") == 2
+    spin = refs["random actions, no model"]["spin"]
+    assert md.count(f"| *random actions, no model* | - | - | - | {np.mean(spin):.3g} ± ") == 2, md
     assert (results.parent / "plots" / "Pendulum-v1_60tr_mse_bars.png").exists()  # one figure per budget
     assert (results.parent / "plots" / "Pendulum-v1_budgets.png").stat().st_size > 10_000  # every budget, every seed
     assert (results.parent / "plots" / "Pendulum-v1_coverage_3ep.png").exists()  # from the records' histograms

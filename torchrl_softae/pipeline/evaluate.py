@@ -248,22 +248,31 @@ def evaluate_run(
         run.write_json(run.eval_dir / eval_file_name(name, planner_overrides), res)
         out["tasks"][name] = res
     if references:
-        out["references"] = write_references(run, cfg.env, chosen, episodes, seed)
+        out["references"] = write_references(run, cfg.env, chosen, episodes, seed, task_episodes)
     return out
 
 
-def write_references(run: RunDir, env: str, tasks: dict[str, Task], episodes: int, seed: int) -> dict:
-    """The model-free references' returns on ``tasks`` (the evaluation's episodes), merged into
-    ``RUN/eval/references.json``: ``{"episodes", "seed", "returns": {label: {task: [...]}}}``."""
+def write_references(run: RunDir, env: str, tasks: dict[str, Task], episodes: int, seed: int,
+                     task_episodes: dict[str, int] | None = None) -> dict:
+    """The model-free references' returns on ``tasks`` (the evaluation's episodes: ``episodes``, or
+    ``task_episodes[name]``), merged into ``RUN/eval/references.json``:
+    ``{"episodes", "seed", "task_episodes", "returns": {label: {task: [...]}}}``."""
     path = run.eval_dir / REFERENCES_FILE
+    want = {name: (task_episodes or {}).get(name, episodes) for name in tasks}
     known = json.loads(path.read_text()) if path.exists() else {}
     if known.get("episodes") != episodes or known.get("seed") != seed:
         known = {"episodes": episodes, "seed": seed, "returns": {}}
+    counts = known.setdefault("task_episodes", {})  # only the tasks that differ from ``episodes``
     for policy, label in REFERENCE_POLICIES.items():
         per_task = known["returns"].setdefault(label, {})
         for name, task in tasks.items():
-            if name not in per_task:
-                per_task[name] = reference_returns(env, task, policy, episodes, seed)
+            if name not in per_task or counts.get(name, episodes) != want[name]:
+                per_task[name] = reference_returns(env, task, policy, want[name], seed)
+    for name, n in want.items():
+        if n == episodes:
+            counts.pop(name, None)
+        else:
+            counts[name] = n
     run.write_json(path, known)
     return known
 

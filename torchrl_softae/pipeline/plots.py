@@ -376,7 +376,8 @@ def plot_budgets(records: list[dict], out_dir: str | Path) -> list[Path]:
     """One figure per env of replication records (:mod:`~torchrl_softae.pipeline.replication`):
     against the exploration budget, the held-out normalized MSE, the coverage and each task's
     zero-shot return and success metric; a thin line per seed (every seed visible), a thick one
-    for the mean over the seeds at each budget, one colour per method."""
+    for the mean over the seeds at each budget, one colour per method; s' = s on the error and the
+    model-free references (records with ``references``) on the returns as grey lines."""
     plt = _plt()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -390,6 +391,7 @@ def plot_budgets(records: list[dict], out_dir: str | Path) -> list[Path]:
         for rec, label in zip(recs, labels):
             runs[label][rec["seed"]][rec["budget"]] = rec
         tasks = sorted({t for r in recs for t in r["tasks"]})
+        refs = next((r["references"]["returns"] for r in recs if "references" in r), {})
         metric = {t: next((r["tasks"][t].get("success_metric") for r in recs if t in r["tasks"]), None) for t in tasks}
         # row 0: the model; row 1: each task's return; row 2: its success metric, under its return
         cols = max(2, len(tasks))
@@ -424,11 +426,20 @@ def plot_budgets(records: list[dict], out_dir: str | Path) -> list[Path]:
                                  if "heldout_nmse_identity" in r["accuracy"]), None)
                 if identity is not None:  # the same held-out set for every record of the env
                     ax.axhline(identity, color="0.4", ls="--", lw=1, label="s' = s (no change)")
-        handles, names = axes[0][0].get_legend_handles_labels()
-        fig.legend(handles, names, loc="lower center", ncol=min(len(names), 6), fontsize=8)
+            elif name.endswith(" return") and refs:  # the same evaluation episodes for every record
+                for (ref, per_task), ls in zip(sorted(refs.items()), (":", "-.")):
+                    if per_task.get(name[: -len(" return")]):
+                        ax.axhline(np.mean(per_task[name[: -len(" return")]]), color="0.3", ls=ls, lw=1, label=ref)
+        legend = {}  # every panel's entries once: the methods, s' = s and the references
+        for ax, _ in placed:
+            for handle, label in zip(*ax.get_legend_handles_labels()):
+                legend.setdefault(label, handle)
+        ncol = min(len(legend), 2 * cols)  # about 1.7 inches per entry: the figure's width
+        fig.legend(list(legend.values()), list(legend), loc="lower center", ncol=ncol, fontsize=8)
+        bottom = (0.15 + 0.25 * -(-len(legend) // ncol)) / fig.get_figheight()  # the legend's rows
         fig.suptitle(f"{env}: against the exploration budget; thin lines: each seed, thick: the mean over seeds",
                      fontsize=10)
-        written.append(_save(fig, out_dir / f"{env}_budgets.png", rect=(0, 0.06, 1, 0.97)))
+        written.append(_save(fig, out_dir / f"{env}_budgets.png", rect=(0, bottom, 1, 0.97)))
     return written
 
 

@@ -93,6 +93,7 @@ def replication_records(root: str | Path) -> list[dict]:
             continue
         out.append({"run_dir": str(path.with_suffix("")), "config": rec["config"], "env": rec["env"],
                     "method": rec["method"], "seed": rec["seed"], "episodes_target": rec["budget"],
-                    "episodes_done": rec["budget"], "history": rec["history"], "evals": rec["tasks"],
+                    "episodes_done": rec["budget"], "history": rec["history"],
+                    "evals": {**rec["tasks"], **({"references": rec["references"]} if "references" in rec else {})},
                     "policies": {}, "record": str(path), "replication": rec, **_progress(rec["history"])})
     return out

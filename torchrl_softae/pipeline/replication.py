@@ -3,7 +3,8 @@ block says; one JSON record per (env, method, seed, budget) that holds everythin
 later without the run dir: the run's full config, the commit and machine that ran it, held-out
 accuracy overall and by group (with the s' = s and predict-the-mean baselines), coverage and the
 histogram of the explored data on the env's coverage grid (heatmaps drawn from the records alone),
-the per-episode history, and per task the returns, success metrics and the planner horizon used.
+the per-episode history, per task the returns, success metrics and the planner horizon used, and
+with ``evaluate: {references: true}`` the model-free references' returns on the same episodes.
 
 Sweep file::
 
@@ -164,7 +165,7 @@ def run_budgets(trial, cfg, on_episode=None) -> list[dict]:
         overrides = [f"planner.{k}={v}" for k, v in (ev.get("planner") or {}).items()] or None
         res = evaluate_run(trial.run_dir, tasks=ev["task_names"], episodes=int(ev.get("episodes", 3)),
                            task_episodes=block["task_episodes"], propagation=ev.get("propagation", "mean"),
-                           progress=False, planner_overrides=overrides)
+                           progress=False, planner_overrides=overrides, references=bool(ev.get("references")))
         accuracy = {k: v for k, v in res.items() if k.startswith("heldout_")}
         tasks = {name: {**r, "planner_horizon": r["planner"]["horizon"]} for name, r in res["tasks"].items()}
         histogram = coverage_histogram(cfg_b, trial.run_dir)
@@ -174,6 +175,8 @@ def run_budgets(trial, cfg, on_episode=None) -> list[dict]:
             "transitions": history[-1]["transitions"], "config": cfg_b.to_dict(), "code": code_version(),
             "machine": machine(), "accuracy": accuracy, "coverage": history[-1]["coverage"],
             "coverage_histogram": histogram, "tasks": tasks,
+            # the model-free returns on the same evaluation episodes (``evaluate: {references: true}``)
+            **({"references": res["references"]} if "references" in res else {}),
             "seconds": {"explore": sum(r["collect_seconds"] + r["train_seconds"] for r in history),
                         "evaluate": time.perf_counter() - t0},
             "history": history,
