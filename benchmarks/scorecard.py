@@ -76,13 +76,8 @@ LOCOMOTION = {
 LOCOMOTION_DEPARTURE = "a MuJoCo proxy of the paper's robot (its physics is ours: docs/results/{page}.md)"
 FAIL_GAP = 0.5  # a method fails a task when it closes less than this fraction of the task's gap
 PAR_GAP = 0.1  # "on par": SoftAE at most this fraction of the gap below H-UCRL
-#: one-core hours per run (explore + 3 evaluations) while no record has measured it: one-episode probes
-#: (2026-12-06, AMX Xeon, two other runs on the machine's 2 cores), scaled to the sweep's budget
-LOCOMOTION_PROBE_HOURS = {
-    "SoftFish-v0": {"random": 0.6, "hucrl": 0.9, "softae": 0.9},
-    "SoftFishTarget-v0": {"random": 0.9, "hucrl": 3.0, "softae": 3.0},
-    "MSKLeg-v0": {"random": 0.6, "hucrl": 3.0, "softae": 3.0},
-}
+#: one exploration episode per (env, method) at the paper preset, measured before the runs
+LOCOMOTION_PROBE = RESULTS / "locomotion_probe.json"
 PAPER_SETTINGS = "SoftArm-v1 (58D), paper preset (Tables S6, S7: 5 x 4 x 256, iCEM P=200 K=20 5 it. H=10), 50 episodes x 200 steps"
 
 
@@ -129,13 +124,37 @@ def _locomotion_settings(env: str) -> str:
             f"{budget} episodes x {length} steps")
 
 
+def grad_steps(episodes: int, length: int, cap: int, epochs: int = 50, batch: int = 64, val: float = 0.1) -> int:
+    """Gradient steps of a run's fits, one after each episode: ``epochs`` passes over the training
+    split in batches of ``batch``, at most ``cap`` per fit (Table S6)."""
+    return sum(min(epochs * -(-round((1 - val) * length * e) // batch), cap) for e in range(1, episodes + 1))
+
+
+def probe_hours(env: str, method: str) -> float:
+    """One-core hours of one run of the env's sweep, from the probe (:data:`LOCOMOTION_PROBE`):
+    planning every real step (Random plans none), the fits after every episode (Table S6: 50 epochs
+    of batches of 64 over 90 % of the data, capped), and each budget's evaluation planned as one
+    particle (priced at SoftAE's planning step, the same shape)."""
+    import yaml
+
+    sweep_file, budget, length, _, _ = LOCOMOTION[env]
+    sweep = yaml.safe_load((ROOT / sweep_file).read_text())
+    probe = json.loads(LOCOMOTION_PROBE.read_text())["runs"][env]
+    cap = 7500 if env.startswith("SoftFish") else 5000  # Table S6's maximum gradient steps
+    plan_ms = probe[method]["plan_ms_per_step"] if method in probe else 0.0
+    train_ms = probe.get(method, probe["softae"])["train_ms_per_grad_step"]
+    ev = sweep["evaluate"]
+    eval_steps = len(sweep["replication"]["budgets"]) * len(ev["tasks"]) * ev["episodes"] * length
+    return (budget * length * plan_ms + grad_steps(budget, length, cap) * train_ms + eval_steps * probe["softae"]["plan_ms_per_step"]) / 3.6e6
+
+
 def _run_hours(env: str, res: dict, method: str) -> float:
     """One-core hours of one run: measured by the committed records of ``method`` (exploration and
     every budget's evaluation), else the probe's estimate."""
     budget = LOCOMOTION[env][1]
     runs = [r for r in res.get(method, [])]
     if not runs:
-        return LOCOMOTION_PROBE_HOURS[env][method]
+        return probe_hours(env, method)
     hours = []
     for r in runs:
         evaluations = [json.loads(p.read_text())["seconds"]["evaluate"]
@@ -151,7 +170,8 @@ def _locomotion_missing(env: str, res: dict, methods) -> str | None:
         return None
     hours = sum(n * _run_hours(env, res, m) for m, n in short.items())
     runs = ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
-    measured = "measured by the finished runs" if all(res.get(m) for m in short) else "partly from one-episode probes"
+    measured = ("measured by the finished runs" if all(res.get(m) for m in short)
+                else f"estimated from one-episode probes, {LOCOMOTION_PROBE.relative_to(ROOT)}")
     return (f"needs >= {MIN_SEEDS} seeds at {LOCOMOTION[env][1]} episodes ({LOCOMOTION[env][0]}); missing {runs}: "
             f"about {hours:.0f} CPU-hours in all, one core per run ({measured})")
 

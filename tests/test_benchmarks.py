@@ -299,6 +299,20 @@ def test_the_fish_and_leg_claims_follow_their_rules(tmp_path, monkeypatch):
     assert "measured by the finished runs" in rows["C12"]["why"]
 
 
+def test_the_locomotion_cost_estimate_counts_the_fits_a_run_makes():
+    """The untested fish and leg rows price their runs from one-episode probes; the fits' gradient
+    steps they count are the ones a committed arm run logged."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import scorecard
+
+    rec = json.loads((scorecard.ARM / "softae-b2-s0-ep50.json").read_text())
+    logged = sum(h["grad_steps"] for h in rec["history"])
+    assert scorecard.grad_steps(50, 200, rec["config"]["train"]["max_grad_steps"]) == logged == 164400
+    hours = {env: {m: scorecard.probe_hours(env, m) for m in ("random", "hucrl", "softae")} for env in scorecard.LOCOMOTION}
+    assert all(h["random"] < min(h["hucrl"], h["softae"]) for h in hours.values())  # Random plans no step
+    assert hours["SoftFish-v0"]["softae"] < hours["SoftFishTarget-v0"]["softae"] / 2  # H = 10 against 100
+
+
 def test_the_results_pages_are_what_the_committed_results_give():
     """``python benchmarks/results_pages.py`` renders every generated block of ``docs/results/*.md``
     and the README's results table from the committed results; a result added, or a table edited by hand, without rendering the
