@@ -152,15 +152,14 @@ def _run_hours(env: str, res: dict, method: str) -> float:
     """One-core hours of one run: measured by the committed records of ``method`` (exploration and
     every budget's evaluation), else the probe's estimate."""
     budget = LOCOMOTION[env][1]
-    runs = [r for r in res.get(method, [])]
+    runs = res.get(method, [])
     if not runs:
         return probe_hours(env, method)
     hours = []
-    for r in runs:
-        evaluations = [json.loads(p.read_text())["seconds"]["evaluate"]
-                       for p in (RESULTS / env).glob(f"{r['method']}*-s{r['seed']}-ep*.json")
-                       if json.loads(p.read_text())["budget"] <= budget]
-        hours.append((r["seconds"]["explore"] + sum(evaluations)) / 3600)
+    for r in runs:  # the run's exploration to the last budget and its evaluation at every budget
+        records = [json.loads(p.read_text()) for p in (RESULTS / env).glob(f"{r['method']}*-s{r['seed']}-ep*.json")]
+        evaluations = sum(rec["seconds"]["evaluate"] for rec in records if rec["budget"] <= budget)
+        hours.append((r["seconds"]["explore"] + evaluations) / 3600)
     return float(np.mean(hours))
 
 
