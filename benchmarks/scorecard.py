@@ -66,12 +66,12 @@ SOPRA_PAR_MM = 5.0
 SOPRA_RUN_HOURS = 0.25
 SOPRA_SETTINGS = ("SoPrA-v0 (the simulated twin, not the real arm), paper preset (Tables S6, S7: 5 x 4 x 256, "
                   "iCEM P=200 K=20 5 it. H=5, colored noise 1.0), 20 episodes x 200 steps")
-#: the fish's and the leg's replications (C8-C13): env -> its sweep file, last budget (episodes),
-#: episode length, iCEM horizon and a one-line description
+#: the fish's and the leg's replications (C8-C13): env -> its sweep file (whose last budget is the
+#: judged one), the paper's episode length (Table S6) and iCEM horizon (Table S7), a description
 LOCOMOTION = {
-    "SoftFish-v0": ("sweeps/replication/fish.yaml", 50, 200, 10, "15D fish, (iii)-(iv)"),
-    "SoftFishTarget-v0": ("sweeps/replication/fish_target.yaml", 50, 200, 100, "18D fish with a target, (v)-(vi)"),
-    "MSKLeg-v0": ("sweeps/replication/leg.yaml", 20, 500, 100, "10D musculoskeletal leg, (vii)-(viii)"),
+    "SoftFish-v0": ("sweeps/replication/fish.yaml", 200, 10, "15D fish, (iii)-(iv)"),
+    "SoftFishTarget-v0": ("sweeps/replication/fish_target.yaml", 200, 100, "18D fish with a target, (v)-(vi)"),
+    "MSKLeg-v0": ("sweeps/replication/leg.yaml", 500, 100, "10D musculoskeletal leg, (vii)-(viii)"),
 }
 LOCOMOTION_DEPARTURE = "a MuJoCo proxy of the paper's robot (its physics is ours: docs/results/{page}.md)"
 FAIL_GAP = 0.5  # a method fails a task when it closes less than this fraction of the task's gap
@@ -106,22 +106,33 @@ def sopra_results(budget: int = SOPRA_BUDGET) -> dict[str, list[dict]]:
     return out
 
 
+def _sweep(env: str) -> dict:
+    import yaml
+
+    return yaml.safe_load((ROOT / LOCOMOTION[env][0]).read_text())
+
+
+def _budget(env: str) -> int:
+    """The judged budget: the last one the env's sweep file evaluates."""
+    return _sweep(env)["replication"]["budgets"][-1]
+
+
 def locomotion_results(env: str) -> dict[str, list[dict]]:
-    """The committed replication records of a fish or leg env at its last budget, paper preset and
-    the paper's horizon, by method."""
-    sweep, budget, _, horizon, _ = LOCOMOTION[env]
+    """The committed replication records of a fish or leg env at its judged budget, paper preset,
+    the paper's horizon and episode length, by method."""
+    _, length, horizon, _ = LOCOMOTION[env]
     out: dict[str, list[dict]] = {}
-    for path in sorted((RESULTS / env).glob(f"*-ep{budget}.json")):
+    for path in sorted((RESULTS / env).glob(f"*-ep{_budget(env)}.json")):
         r = json.loads(path.read_text())
-        if _paper_preset(r["config"], horizon=horizon):
+        if _paper_preset(r["config"], horizon=horizon) and r["config"]["episode_length"] == length:
             out.setdefault(r["method"], []).append(r)
     return out
 
 
 def _locomotion_settings(env: str) -> str:
-    _, budget, length, horizon, what = LOCOMOTION[env]
+    _, length, horizon, what = LOCOMOTION[env]
     return (f"{env} ({what}), paper preset (Tables S6, S7: 5 x 4 x 256, iCEM P=200 K=20 5 it. H={horizon}), "
-            f"{budget} episodes x {length} steps")
+            f"{_budget(env)} episodes x {length} steps")
 
 
 def grad_steps(episodes: int, length: int, cap: int, epochs: int = 50, batch: int = 64, val: float = 0.1) -> int:
@@ -132,26 +143,25 @@ def grad_steps(episodes: int, length: int, cap: int, epochs: int = 50, batch: in
 
 def probe_hours(env: str, method: str) -> float:
     """One-core hours of one run of the env's sweep, from the probe (:data:`LOCOMOTION_PROBE`):
-    planning every real step (Random plans none), the fits after every episode (Table S6: 50 epochs
-    of batches of 64 over 90 % of the data, capped), and each budget's evaluation planned as one
-    particle (priced at SoftAE's planning step, the same shape)."""
-    import yaml
+    planning every real step (Random plans none), the fits after every episode (the run's training
+    schedule), and each budget's evaluation planned as one particle (priced at SoftAE's planning
+    step, the same shape)."""
+    from torchrl_softae.pipeline.config import make_config
 
-    sweep_file, budget, length, _, _ = LOCOMOTION[env]
-    sweep = yaml.safe_load((ROOT / sweep_file).read_text())
+    sweep, budget, cfg = _sweep(env), _budget(env), make_config(env)  # the sweeps set no schedule
     probe = json.loads(LOCOMOTION_PROBE.read_text())["runs"][env]
-    cap = 7500 if env.startswith("SoftFish") else 5000  # Table S6's maximum gradient steps
     plan_ms = probe[method]["plan_ms_per_step"] if method in probe else 0.0
     train_ms = probe.get(method, probe["softae"])["train_ms_per_grad_step"]
-    ev = sweep["evaluate"]
+    t, length, ev = cfg.train, cfg.episode_length, sweep["evaluate"]
+    fits = grad_steps(budget, length, t.max_grad_steps, t.epochs, t.batch_size, t.val_fraction)
     eval_steps = len(sweep["replication"]["budgets"]) * len(ev["tasks"]) * ev["episodes"] * length
-    return (budget * length * plan_ms + grad_steps(budget, length, cap) * train_ms + eval_steps * probe["softae"]["plan_ms_per_step"]) / 3.6e6
+    return (budget * length * plan_ms + fits * train_ms + eval_steps * probe["softae"]["plan_ms_per_step"]) / 3.6e6
 
 
 def _run_hours(env: str, res: dict, method: str) -> float:
     """One-core hours of one run: measured by the committed records of ``method`` (exploration and
     every budget's evaluation), else the probe's estimate."""
-    budget = LOCOMOTION[env][1]
+    budget = _budget(env)
     runs = res.get(method, [])
     if not runs:
         return probe_hours(env, method)
@@ -171,7 +181,7 @@ def _locomotion_missing(env: str, res: dict, methods) -> str | None:
     runs = ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
     measured = ("measured by the finished runs" if all(res.get(m) for m in short)
                 else f"estimated from one-episode probes, {LOCOMOTION_PROBE.relative_to(ROOT)}")
-    return (f"needs >= {MIN_SEEDS} seeds at {LOCOMOTION[env][1]} episodes ({LOCOMOTION[env][0]}); missing {runs}: "
+    return (f"needs >= {MIN_SEEDS} seeds at {_budget(env)} episodes ({LOCOMOTION[env][0]}); missing {runs}: "
             f"about {hours:.0f} CPU-hours in all, one core per run ({measured})")
 
 

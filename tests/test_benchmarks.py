@@ -233,10 +233,10 @@ def test_the_twin_claims_follow_their_rules(tmp_path, monkeypatch):
     assert all(r["verdict"] == "untested" and "3 of hucrl (has 0)" in r["why"] for r in rows)
 
 
-def _locomotion_record(env, method, seed, returns: dict, nmse, horizon, references: dict):
+def _locomotion_record(env, method, seed, returns: dict, nmse, horizon, references: dict, length):
     """A fish or leg replication record with the given per-episode task returns."""
     return {"env": env, "method": method, "seed": seed, "budget": 50, "accuracy": {"heldout_nmse": nmse},
-            "config": {"model": {"num_cells": 256, "depth": 4}, "train": {"lr": 5e-5},
+            "config": {"model": {"num_cells": 256, "depth": 4}, "train": {"lr": 5e-5}, "episode_length": length,
                        "planner": {"num_candidates": 200, "horizon": horizon}},
             "tasks": {t: {"returns": r} for t, r in returns.items()},
             "references": {"episodes": 2, "seed": 0, "returns": references},
@@ -250,9 +250,11 @@ def test_the_fish_and_leg_claims_follow_their_rules(tmp_path, monkeypatch):
     import scorecard
 
     monkeypatch.setattr(scorecard, "RESULTS", tmp_path)
-    monkeypatch.setitem(scorecard.LOCOMOTION, "SoftFish-v0", ("fish.yaml", 50, 200, 10, "fish"))
-    monkeypatch.setitem(scorecard.LOCOMOTION, "SoftFishTarget-v0", ("fish_target.yaml", 50, 200, 100, "target"))
-    monkeypatch.setitem(scorecard.LOCOMOTION, "MSKLeg-v0", ("leg.yaml", 50, 500, 100, "leg"))
+    sweep = tmp_path / "sweep.yaml"  # the judged budget is the sweep file's last
+    sweep.write_text("replication: {budgets: [10, 50]}\n")
+    monkeypatch.setitem(scorecard.LOCOMOTION, "SoftFish-v0", (sweep, 200, 10, "fish"))
+    monkeypatch.setitem(scorecard.LOCOMOTION, "SoftFishTarget-v0", (sweep, 200, 100, "target"))
+    monkeypatch.setitem(scorecard.LOCOMOTION, "MSKLeg-v0", (sweep, 500, 100, "leg"))
     # env -> (horizon, references, task -> method -> level)
     cases = {
         "SoftFish-v0": (10, {"zero": {"forward": [0.0], "backward": [0.0]},
@@ -274,7 +276,8 @@ def test_the_fish_and_leg_claims_follow_their_rules(tmp_path, monkeypatch):
         for method in ("softae", "random", "hucrl"):
             for seed, e in enumerate(noise):
                 returns = {t: [lv[method] + e, lv[method] - e / 2] for t, lv in levels.items()}
-                rec = _locomotion_record(env, method, seed, returns, nmse[method] + 0.01 * e, horizon, refs)
+                rec = _locomotion_record(env, method, seed, returns, nmse[method] + 0.01 * e, horizon, refs,
+                                         scorecard.LOCOMOTION[env][1])
                 (tmp_path / env / f"{method}-s{seed}-ep50.json").write_text(json.dumps(rec))
     results = {env: scorecard.locomotion_results(env) for env in cases}
     rows = {r["id"]: r for r in scorecard.locomotion_claims(results)}
