@@ -559,8 +559,11 @@ def markdown(rows: list[dict]) -> str:
              f"Rules: paper settings only; >= {MIN_SEEDS} seeds of each compared method (3 of Mean-AE and PETS-AE); "
              f"one-sided Welch t-tests at alpha = {ALPHA} (p: the largest of a claim's tests); a reaching task "
              f"\"fails\" above a {FAIL_MM:g} mm mean final error; \"on par\" within {PAR_MM:g} mm; model errors as "
-             "ratios to Random's (our held-out set is not the paper's); SoPrA's twin: 3 seeds (the paper's count), "
-             f"\"comparable\" within {SOPRA_PAR_MM:g} mm (the reach reward's tolerance).", "",
+             "ratios to Random's (our held-out set is not the paper's); fish and leg tasks (C8-C13, rules fixed "
+             "before their runs started, commit 0abaf15): a task's gap runs from the better model-free reference "
+             f"(no control, random actions) to the best method's mean return, a method \"fails\" closing less than "
+             f"{FAIL_GAP:g} of it and is \"on par\" within {PAR_GAP:g} of it; SoPrA's twin: 3 seeds (the paper's "
+             f"count), \"comparable\" within {SOPRA_PAR_MM:g} mm (the reach reward's tolerance).", "",
              "| id | claim | paper | ours | n | test | p | verdict | why |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p = "-" if r["p"] is None else f"{r['p']:.3g}"
