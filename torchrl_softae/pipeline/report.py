@@ -135,7 +135,7 @@ def report(root: str | Path, plots: bool = True, warn=None, merge: list | tuple 
             cells = [f"*{name}*", "-", *(_fmt([v], 3) for v in values), "-"]
             cells += ["-"] * (len(tasks) + sum(1 for t in tasks if metric_of[t]) + len(policy_tasks))
             md.append("| " + " | ".join(cells) + " |")
-        for name, per_task in refs.items():
+        for name, per_task in sorted(refs.items()):  # one order whichever run's file was read
             cells = [f"*{name}*", "-", "-", *["-"] * len(groups), "-"]
             for t in tasks:
                 cells.append(_fmt(per_task.get(t.split("@")[0], []), 3))
