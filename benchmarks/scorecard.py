@@ -179,8 +179,10 @@ def _locomotion_missing(env: str, res: dict, methods) -> str | None:
         return None
     hours = sum(n * _run_hours(env, res, m) for m, n in short.items())
     runs = ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
-    measured = ("measured by the finished runs" if all(res.get(m) for m in short)
-                else f"estimated from one-episode probes, {LOCOMOTION_PROBE.relative_to(ROOT)}")
+    probes = f"one-episode probes, {LOCOMOTION_PROBE.relative_to(ROOT)}"
+    has_runs = [bool(res.get(m)) for m in short]
+    measured = ("measured by the finished runs" if all(has_runs) else f"estimated from {probes}" if not any(has_runs)
+                else f"measured by a method's finished runs where it has some, else estimated from {probes}")
     return (f"needs >= {MIN_SEEDS} seeds at {_budget(env)} episodes ({LOCOMOTION[env][0]}); missing {runs}: "
             f"about {hours:.0f} CPU-hours in all, one core per run ({measured})")
 
