@@ -40,6 +40,7 @@ Each claim's comparison, test and thresholds are fixed here before the runs they
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 from pathlib import Path
 
@@ -73,6 +74,8 @@ LOCOMOTION = {
     "SoftFishTarget-v0": ("sweeps/replication/fish_target.yaml", 200, 100, "18D fish with a target, (v)-(vi)"),
     "MSKLeg-v0": ("sweeps/replication/leg.yaml", 500, 100, "10D musculoskeletal leg, (vii)-(viii)"),
 }
+#: how the rows name the compared methods
+NAMES = {"softae": "SoftAE", "random": "Random", "hucrl": "H-UCRL"}
 LOCOMOTION_DEPARTURE = "a MuJoCo proxy of the paper's robot (its physics is ours: docs/results/{page}.md)"
 FAIL_GAP = 0.5  # a method fails a task when it closes less than this fraction of the task's gap
 PAR_GAP = 0.1  # "on par": SoftAE at most this fraction of the gap below H-UCRL
@@ -107,9 +110,14 @@ def sopra_results(budget: int = SOPRA_BUDGET) -> dict[str, list[dict]]:
 
 
 def _sweep(env: str) -> dict:
+    return _read_yaml(ROOT / LOCOMOTION[env][0])
+
+
+@functools.lru_cache
+def _read_yaml(path: Path) -> dict:
     import yaml
 
-    return yaml.safe_load((ROOT / LOCOMOTION[env][0]).read_text())
+    return yaml.safe_load(path.read_text())
 
 
 def _budget(env: str) -> int:
@@ -225,17 +233,15 @@ def _par(res: dict, g: dict, task: str) -> tuple[str, float]:
     return ("short" if p < ALPHA else "unclear"), p
 
 
-def _gap_text(g: dict, names=("softae", "random", "hucrl")) -> str:
-    label = {"softae": "SoftAE", "random": "Random", "hucrl": "H-UCRL"}
-    closed = ", ".join(f"{label[m]} {g['closed'][m]:.2f}" if np.isfinite(g["closed"][m]) else f"{label[m]} -"
-                       for m in names)
+def _gap_text(g: dict, methods=("softae", "random", "hucrl")) -> str:
+    closed = ", ".join(f"{NAMES[m]} {g['closed'][m]:.2f}" if np.isfinite(g["closed"][m]) else f"{NAMES[m]} -"
+                       for m in methods)
     return f"reference {g['reference']:.3g}; gap closed: {closed}"
 
 
 def locomotion_claims(results: dict[str, dict]) -> list[dict]:
     """C8-C13 from the fish's and the leg's records (``results``: env -> method -> records)."""
     methods = ("softae", "random", "hucrl")
-    label = {"softae": "SoftAE", "random": "Random", "hucrl": "H-UCRL"}
     claims = [  # id, claim, paper, env, task, kind, named methods
         ("C8", "fish (iii): SoftAE on par with H-UCRL trained on (iii)", "Fig. 2B", "SoftFish-v0", "forward", "par", ()),
         ("C9", "fish (iv): H-UCRL fails", "Fig. 2B", "SoftFish-v0", "backward", "fail", ("hucrl",)),
@@ -253,7 +259,7 @@ def locomotion_claims(results: dict[str, dict]) -> list[dict]:
         page = "leg" if env.startswith("MSK") else "fish"
         departure = LOCOMOTION_DEPARTURE.format(page=page)
         miss = _locomotion_missing(env, res, methods)
-        so_far = ", ".join(f"{label[m]} {_fmt(_returns(res[m], task))}" for m in methods if res.get(m))
+        so_far = ", ".join(f"{NAMES[m]} {_fmt(_returns(res[m], task))}" for m in methods if res.get(m))
         if miss:
             rows.append(_row(cid, claim, paper, f"{task} return so far: {so_far}" if so_far else "-",
                              why=f"{miss}; {departure}"))
@@ -285,7 +291,7 @@ def locomotion_claims(results: dict[str, dict]) -> list[dict]:
                 elif verdict == "holds" and not all(sig for _, sig in fails.values()):
                     verdict = "partly"
         if fails:
-            why.insert(0, "fails: " + ", ".join(f"{label[m]} {'yes' if f else 'no'}" for m, (f, _) in fails.items()))
+            why.insert(0, "fails: " + ", ".join(f"{NAMES[m]} {'yes' if f else 'no'}" for m, (f, _) in fails.items()))
         rows.append(_row(cid, claim, paper, ours, n, _locomotion_settings(env), test, max(ps), verdict, "; ".join(why)))
     return rows
 
@@ -454,7 +460,6 @@ def sopra_claims(res: dict) -> list[dict]:
         return [_row(cid, claim, paper, why=why) for cid, claim, paper in claims]
     s, r, h = (res[m] for m in methods)
     n = f"{len(s)} / {len(r)} / {len(h)}"
-    names = dict(zip(methods, ("SoftAE", "Random", "H-UCRL")))
     rows = []
 
     def softae_below(task, metric):
@@ -468,8 +473,8 @@ def sopra_claims(res: dict) -> list[dict]:
     worst = {m: [max(x["final_error_mm"] for x in rec["tasks"]["reach-any"]["metrics"]) for rec in res[m]]
              for m in methods}
     rows.append(_row(claims[0][0], claims[0][1], claims[0][2],
-                     "mean final error " + ", ".join(f"{names[m]} {_fmt(vals[m])} mm" for m in methods)
-                     + "; max " + ", ".join(f"{names[m]} {_fmt(worst[m])} mm" for m in methods),
+                     "mean final error " + ", ".join(f"{NAMES[m]} {_fmt(vals[m])} mm" for m in methods)
+                     + "; max " + ", ".join(f"{NAMES[m]} {_fmt(worst[m])} mm" for m in methods),
                      n, SOPRA_SETTINGS, test + " (per seed: the mean over the 20 targets)", max(ps),
                      _verdict(ok, [q < ALPHA for q in ps]), "on the twin, not the real arm"))
 
@@ -480,8 +485,8 @@ def sopra_claims(res: dict) -> list[dict]:
     if spread > SOPRA_PAR_MM:
         verdict = "fails" if verdict == "fails" else "partly"
     rows.append(_row(claims[1][0], claims[1][1], claims[1][2],
-                     "(ix) final error " + ", ".join(f"{names[m]} {_fmt(close[m])} mm" for m in methods)
-                     + f" (spread {spread:.1f} mm); (x) " + ", ".join(f"{names[m]} {_fmt(far[m])} mm" for m in methods),
+                     "(ix) final error " + ", ".join(f"{NAMES[m]} {_fmt(close[m])} mm" for m in methods)
+                     + f" (spread {spread:.1f} mm); (x) " + ", ".join(f"{NAMES[m]} {_fmt(far[m])} mm" for m in methods),
                      n, SOPRA_SETTINGS, f"(ix): means within {SOPRA_PAR_MM:g} mm of each other; (x): {test}", max(ps),
                      verdict, "on the twin, not the real arm; (ix) comparable: "
                      + ("yes" if spread <= SOPRA_PAR_MM else "no")))
@@ -489,7 +494,7 @@ def sopra_claims(res: dict) -> list[dict]:
     parts, pss, oks = [], [], []
     for shape in ("square", "lemniscate"):
         v, ps, ok = softae_below(f"track-{shape}", "mean_error_mm")
-        parts.append(f"{shape} " + ", ".join(f"{names[m]} {_fmt(v[m])} mm" for m in methods))
+        parts.append(f"{shape} " + ", ".join(f"{NAMES[m]} {_fmt(v[m])} mm" for m in methods))
         pss += ps
         oks += ok
     rows.append(_row(claims[2][0], claims[2][1], claims[2][2], "mean tracking error: " + "; ".join(parts), n,

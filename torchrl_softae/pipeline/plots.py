@@ -392,6 +392,7 @@ def plot_budgets(records: list[dict], out_dir: str | Path) -> list[Path]:
             runs[label][rec["seed"]][rec["budget"]] = rec
         tasks = sorted({t for r in recs for t in r["tasks"]})
         refs = next((r["references"]["returns"] for r in recs if "references" in r), {})
+        reference_panels = {f"{t} return": t for t in tasks} if refs else {}
         metric = {t: next((r["tasks"][t].get("success_metric") for r in recs if t in r["tasks"]), None) for t in tasks}
         # row 0: the model; row 1: each task's return; row 2: its success metric, under its return
         cols = max(2, len(tasks))
@@ -426,10 +427,10 @@ def plot_budgets(records: list[dict], out_dir: str | Path) -> list[Path]:
                                  if "heldout_nmse_identity" in r["accuracy"]), None)
                 if identity is not None:  # the same held-out set for every record of the env
                     ax.axhline(identity, color="0.4", ls="--", lw=1, label="s' = s (no change)")
-            elif name.endswith(" return") and refs:  # the same evaluation episodes for every record
+            elif name in reference_panels:  # the same evaluation episodes for every record
                 for (ref, per_task), ls in zip(sorted(refs.items()), (":", "-.")):
-                    if per_task.get(name[: -len(" return")]):
-                        ax.axhline(np.mean(per_task[name[: -len(" return")]]), color="0.3", ls=ls, lw=1, label=ref)
+                    if per_task.get(reference_panels[name]):
+                        ax.axhline(np.mean(per_task[reference_panels[name]]), color="0.3", ls=ls, lw=1, label=ref)
         legend = {}  # every panel's entries once: the methods, s' = s and the references
         for ax, _ in placed:
             for handle, label in zip(*ax.get_legend_handles_labels()):
