@@ -145,6 +145,33 @@ def test_heldout_extrapolation_splits_the_runs_own_metric(tmp_path):
     assert all(0.8 < v < 1.9 for v in r["action_change_per_episode"]), r["action_change_per_episode"]
 
 
+def test_fish_heading_splits_the_runs_own_metric(tmp_path):
+    """The fish study's heading bins partition the held-out set and weigh back to the run's logged
+    held-out metric; its forward episode is the task's length and its one-step predictions are the
+    run's model's."""
+    import json
+
+    from test_pipeline import _explore_argv
+
+    from torchrl_softae.pipeline.cli import main
+
+    sys.path.insert(0, str(ROOT / "benchmarks" / "studies"))
+    import fish_heading
+
+    run = tmp_path / "run"
+    assert main(_explore_argv(run, method="random", env="SoftFish-v0")) == 0
+    logged = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])["heldout_nmse"]
+    r = fish_heading.study(str(run), horizon=3)
+    bins = r["heldout"].values()
+    total = sum(b["n"] for b in bins)
+    assert r["method"] == "random" and r["transitions"] == 60 and total > 0
+    assert abs(sum(b["n"] * b["model"] for b in bins if b["n"]) / total - logged) <= 1e-4 * logged
+    assert all(b["model"] > 0 and b["identity"] > 0 for b in bins if b["n"])
+    assert 0 <= r["data"]["share_abs_yaw_below_0.5"] <= 1 and r["data"]["median_abs_yaw"] >= 0
+    f = r["forward"]
+    assert f["one_step_nmse"] > 0 and abs(f["real_vx"]) < 5 and abs(f["predicted_vx"]) < 5
+
+
 def test_network_calls_are_recorded_on_every_inference_path():
     """``--network-alone`` replays what ``RecordNetworkCalls`` saw: a plan's network calls are the
     same record whether they run through ``network_output`` (a torch path) or as a rollout's
