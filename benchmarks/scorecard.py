@@ -166,13 +166,26 @@ def probe_hours(env: str, method: str) -> float:
     return (budget * length * plan_ms + fits * train_ms + eval_steps * probe["softae"]["plan_ms_per_step"]) / 3.6e6
 
 
+def probe_calibration() -> tuple[float, int]:
+    """``(ratio, n)``: the median of measured over probe-estimated hours across the ``n``
+    (env, method) pairs with finished runs. The probes ran beside two other runs on two cores, the
+    sweeps' runs beside one, so a probe overstates a run's hours by about this ratio; 1 before any
+    run has finished."""
+    ratios = [_measured_hours(env, res[m]) / probe_hours(env, m)
+              for env in LOCOMOTION for res in [locomotion_results(env)] for m in res]
+    return (float(np.median(ratios)), len(ratios)) if ratios else (1.0, 0)
+
+
 def _run_hours(env: str, res: dict, method: str) -> float:
     """One-core hours of one run: measured by the committed records of ``method`` (exploration and
-    every budget's evaluation), else the probe's estimate."""
-    budget = _budget(env)
+    every budget's evaluation), else the probe's estimate scaled by :func:`probe_calibration`."""
     runs = res.get(method, [])
-    if not runs:
-        return probe_hours(env, method)
+    return _measured_hours(env, runs) if runs else probe_hours(env, method) * probe_calibration()[0]
+
+
+def _measured_hours(env: str, runs: list[dict]) -> float:
+    """Mean one-core hours of ``runs`` (their records at the judged budget)."""
+    budget = _budget(env)
     hours = []
     for r in runs:  # the run's exploration to the last budget and its evaluation at every budget
         records = [json.loads(p.read_text()) for p in (RESULTS / env).glob(f"{r['method']}*-s{r['seed']}-ep*.json")]
@@ -187,10 +200,16 @@ def _locomotion_missing(env: str, res: dict, methods) -> str | None:
         return None
     hours = sum(n * _run_hours(env, res, m) for m, n in short.items())
     runs = ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
-    probes = f"one-episode probes, {LOCOMOTION_PROBE.relative_to(ROOT)}"
     has_runs = [bool(res.get(m)) for m in short]
-    measured = ("measured by the finished runs" if all(has_runs) else f"estimated from {probes}" if not any(has_runs)
-                else f"measured by a method's finished runs where it has some, else estimated from {probes}")
+    if all(has_runs):
+        measured = "measured by the finished runs"
+    else:
+        ratio, pairs = probe_calibration()
+        probes = f"one-episode probes, {LOCOMOTION_PROBE.relative_to(ROOT)}" + (
+            f", times {ratio:.2f}: the median of measured over probe hours of the {pairs} (env, method) pairs "
+            "with finished runs" if pairs else "")
+        measured = (f"estimated from {probes}" if not any(has_runs)
+                    else f"measured by a method's finished runs where it has some, else estimated from {probes}")
     return (f"needs >= {MIN_SEEDS} seeds at {_budget(env)} episodes ({LOCOMOTION[env][0]}); missing {runs}: "
             f"about {hours:.0f} CPU-hours in all, one core per run ({measured})")
 
