@@ -17,7 +17,8 @@ Per run:
 - ``forward``: one forward episode of the zero-shot controller the replication evaluates (iCEM of
   the run's planner, mean propagation, H = 10; the first evaluation episode's seed), with the
   return, the model's one-step predicted ``v_x`` along the executed transitions against the real
-  one (mean over the episode), and the one-step normalized MSE on those transitions.
+  one (mean over the episode), the one-step normalized MSE on those transitions and the final
+  ``|yaw|``.
 Results: ``benchmarks/results/fish_heading/RUN.json``.
 """
 from __future__ import annotations
@@ -34,11 +35,6 @@ HEADING_BINS = {"|yaw| < 0.5": (0.0, 0.5), "0.5 <= |yaw| < 1.5": (0.5, 1.5), "|y
 VX, YAW = 0, 3  # state layout of SoftFish-v0 (torchrl_softae.envs.robots.fish.fish_layout)
 
 
-def _nmse(pred: torch.Tensor, target: torch.Tensor, scale) -> float:
-    _, std, kept = scale
-    return float(((pred - target) / torch.where(kept, std, torch.ones_like(std))).square().mean(0)[kept].mean())
-
-
 def _heading_speed(obs: torch.Tensor) -> torch.Tensor:
     return obs[:, VX] * torch.cos(obs[:, YAW]) + obs[:, VX + 1] * torch.sin(obs[:, YAW])
 
@@ -46,7 +42,8 @@ def _heading_speed(obs: torch.Tensor) -> torch.Tensor:
 @torch.no_grad()
 def study(run_dir: str, horizon: int = 10) -> dict:
     from torchrl_softae.pipeline.catalog import get_env_entry, get_task
-    from torchrl_softae.pipeline.data import ModelAccuracy, episode_seed, make_real_env, seed_everything
+    from torchrl_softae.pipeline.data import (ModelAccuracy, episode_seed, make_real_env, normalized_mse,
+                                              seed_everything, trivial_nmse)
     from torchrl_softae.pipeline.evaluate import load_run, task_policy
     from torchrl_softae.pipeline.policy import stored_transitions
     from torchrl_softae.pipeline.runs import RunDir
@@ -59,16 +56,13 @@ def study(run_dir: str, horizon: int = 10) -> dict:
     entry = get_env_entry(cfg.env)
     data = stored_transitions(run, state)["observation"]
     accuracy = ModelAccuracy(entry, run, cfg.heldout_size)
-    held = accuracy.heldout
-    obs, nxt = held["observation"], held["next", "observation"]
-    mu = model.predict(obs, held["action"])[0]
-    heading = obs[:, YAW].abs()
+    held, scale = accuracy.heldout, accuracy.scale
+    heading = held["observation"][:, YAW].abs()
     heldout = {}
     for name, (lo, hi) in HEADING_BINS.items():
-        m = (heading >= lo) & (heading < hi)
-        n = int(m.sum())
-        heldout[name] = {"n": n, "model": _nmse(mu[m], nxt[m], accuracy.scale) if n else None,
-                         "identity": _nmse(obs[m], nxt[m], accuracy.scale) if n else None}
+        part = held[(heading >= lo) & (heading < hi)]
+        heldout[name] = {"n": len(part), "model": normalized_mse(model, part, None, scale) if len(part) else None,
+                         "identity": trivial_nmse(part, scale)["identity"] if len(part) else None}
 
     cfg.planner.horizon = horizon
     task = get_task(entry, "forward")
@@ -84,7 +78,7 @@ def study(run_dir: str, horizon: int = 10) -> dict:
     forward = {"return": float(traj["next", "reward"].sum()),
                "predicted_vx": float(predicted[:, VX].mean()),
                "real_vx": float(traj["next", "observation"][:, VX].mean()),
-               "one_step_nmse": _nmse(predicted, traj["next", "observation"], accuracy.scale),
+               "one_step_nmse": normalized_mse(model, traj, None, scale),
                "final_abs_yaw": float(traj["next", "observation"][-1, YAW].abs())}
     return {"run": Path(run_dir).name, "env": cfg.env, "method": cfg.method, "seed": cfg.seed,
             "episodes": state["episode"] + 1, "transitions": len(data), "horizon": horizon,
