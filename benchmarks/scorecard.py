@@ -166,21 +166,13 @@ def probe_hours(env: str, method: str) -> float:
     return (budget * length * plan_ms + fits * train_ms + eval_steps * probe["softae"]["plan_ms_per_step"]) / 3.6e6
 
 
-def probe_calibration() -> tuple[float, int]:
+def probe_calibration(results: dict[str, dict]) -> tuple[float, int]:
     """``(ratio, n)``: the median of measured over probe-estimated hours across the ``n``
-    (env, method) pairs with finished runs. The probes ran beside two other runs on two cores, the
-    sweeps' runs beside one, so a probe overstates a run's hours by about this ratio; 1 before any
-    run has finished."""
-    ratios = [_measured_hours(env, res[m]) / probe_hours(env, m)
-              for env in LOCOMOTION for res in [locomotion_results(env)] for m in res]
+    (env, method) pairs with finished runs in ``results`` (env -> method -> records). The probes ran
+    beside two other runs on two cores, the sweeps' runs beside one, so a probe overstates a run's
+    hours by about this ratio; 1 before any run has finished."""
+    ratios = [_measured_hours(env, runs) / probe_hours(env, m) for env, res in results.items() for m, runs in res.items()]
     return (float(np.median(ratios)), len(ratios)) if ratios else (1.0, 0)
-
-
-def _run_hours(env: str, res: dict, method: str) -> float:
-    """One-core hours of one run: measured by the committed records of ``method`` (exploration and
-    every budget's evaluation), else the probe's estimate scaled by :func:`probe_calibration`."""
-    runs = res.get(method, [])
-    return _measured_hours(env, runs) if runs else probe_hours(env, method) * probe_calibration()[0]
 
 
 def _measured_hours(env: str, runs: list[dict]) -> float:
@@ -194,17 +186,21 @@ def _measured_hours(env: str, runs: list[dict]) -> float:
     return float(np.mean(hours))
 
 
-def _locomotion_missing(env: str, res: dict, methods) -> str | None:
+def _locomotion_missing(env: str, res: dict, methods, calibration) -> str | None:
+    """The runs and CPU-hours ``env`` still needs, or ``None``. A method's run is priced by its
+    finished runs where it has some, else by the probe times ``calibration()``
+    (:func:`probe_calibration`, computed only when needed)."""
     short = {m: MIN_SEEDS - len(res.get(m, [])) for m in methods if len(res.get(m, [])) < MIN_SEEDS}
     if not short:
         return None
-    hours = sum(n * _run_hours(env, res, m) for m, n in short.items())
     runs = ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
     has_runs = [bool(res.get(m)) for m in short]
+    ratio, pairs = (1.0, 0) if all(has_runs) else calibration()
+    hours = sum(n * (_measured_hours(env, res[m]) if res.get(m) else probe_hours(env, m) * ratio)
+                for m, n in short.items())
     if all(has_runs):
         measured = "measured by the finished runs"
     else:
-        ratio, pairs = probe_calibration()
         probes = f"one-episode probes, {LOCOMOTION_PROBE.relative_to(ROOT)}" + (
             f", times {ratio:.2f}: the median of measured over probe hours of the {pairs} (env, method) pairs "
             "with finished runs" if pairs else "")
@@ -273,11 +269,12 @@ def locomotion_claims(results: dict[str, dict]) -> list[dict]:
         ("C13", "leg (viii): H-UCRL and Random fail", "Fig. 2C", "MSKLeg-v0", "cw", "fail", ("hucrl", "random")),
     ]
     rows = []
+    calibration = functools.cache(lambda: probe_calibration(results))
     for cid, claim, paper, env, task, kind, named in claims:
         res = results[env]
         page = "leg" if env.startswith("MSK") else "fish"
         departure = LOCOMOTION_DEPARTURE.format(page=page)
-        miss = _locomotion_missing(env, res, methods)
+        miss = _locomotion_missing(env, res, methods, calibration)
         so_far = ", ".join(f"{NAMES[m]} {_fmt(_returns(res[m], task))}" for m in methods if res.get(m))
         if miss:
             rows.append(_row(cid, claim, paper, f"{task} return so far: {so_far}" if so_far else "-",

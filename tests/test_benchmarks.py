@@ -343,11 +343,12 @@ def test_the_locomotion_cost_estimate_counts_the_fits_a_run_makes():
     assert hours["SoftFish-v0"]["softae"] < hours["SoftFishTarget-v0"]["softae"] / 2  # H = 10 against 100
     # the probes ran more contended than the sweeps: the median ratio of the finished (env, method)
     # pairs rescales them, and brings each pair's estimate within a factor of 1.5 of its measured hours
-    ratio, pairs = scorecard.probe_calibration()
-    finished = [(env, m) for env in scorecard.LOCOMOTION for m in scorecard.locomotion_results(env)]
+    results = {env: scorecard.locomotion_results(env) for env in scorecard.LOCOMOTION}
+    ratio, pairs = scorecard.probe_calibration(results)
+    finished = [(env, m) for env, res in results.items() for m in res]
     assert pairs == len(finished) and (pairs == 0 or ratio != 1.0)
     for env, m in finished:
-        measured = scorecard._measured_hours(env, scorecard.locomotion_results(env)[m])
+        measured = scorecard._measured_hours(env, results[env][m])
         assert 1 / 1.5 < hours[env][m] * ratio / measured < 1.5, (env, m)
 
 
