@@ -18,7 +18,7 @@ from torchrl_softae.modules import EnsembleWorldModel
 from torchrl_softae.objectives import MBPOTrainer, branched_rollouts, make_sac_actor_critic
 from torchrl_softae.pipeline.cli import main
 from torchrl_softae.pipeline.config import ConfigError, make_config
-from torchrl_softae.pipeline.evaluate import _task_rollouts, reference_returns
+from torchrl_softae.pipeline.evaluate import task_rollouts, reference_returns
 from torchrl_softae.pipeline.policy import POLICY_FAULT_ENV
 from torchrl_softae.tasks.base import TaskReward
 from torchrl_softae.tasks.pendulum import tasks as pendulum_tasks
@@ -79,7 +79,7 @@ def test_sac_on_the_true_pendulum_dynamics_swings_up_far_above_random(one_thread
                           imagined_capacity=50_000, lr=1e-3)
     trainer.train(env, real, rounds=400, seed=0)  # seeds 0-2 of this test: -159, -115, -157
     assert trainer.updates == 4000
-    ret = np.mean(_task_rollouts("Pendulum-v1", task, 3, 0, lambda r, s, t: trainer.policy(1))["returns"])
+    ret = np.mean(task_rollouts("Pendulum-v1", task, 3, 0, lambda r, s, t: trainer.policy(1))["returns"])
     rand = np.mean(reference_returns("Pendulum-v1", "swingup", "random", episodes=3, seed=0))
     assert rand < -900 and ret > -400 and ret > rand + 700, (ret, rand)
 

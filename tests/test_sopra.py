@@ -377,14 +377,14 @@ def test_reference_paths_have_the_stated_size():
 
 def test_tracking_moves_the_target_every_step_and_scores_each_step_against_its_point():
     from torchrl_softae.envs.robots.reach import reach_reward
-    from torchrl_softae.pipeline.evaluate import _task_rollouts, episode_seed
+    from torchrl_softae.pipeline.evaluate import episode_seed, task_rollouts
     from torchrl_softae.tasks.sopra import reference_path, tasks
 
     def ramp(real, seed, task):  # pressures up in chambers 0 and 3: the tip leaves the rest point
         return lambda td: td.set("action", torch.tensor([0.5, 0, 0, 0.5, 0, 0]))
 
     family = tasks()["track-square"]
-    res = _task_rollouts("SoPrA-v0", family, 1, 0, ramp)
+    res = task_rollouts("SoPrA-v0", family, 1, 0, ramp)
     metrics = res["metrics"][0]
     tips = torch.tensor(metrics["tips"])
     assert tips.shape == (79, 3)

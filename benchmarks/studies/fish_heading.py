@@ -42,12 +42,10 @@ def _heading_speed(obs: torch.Tensor) -> torch.Tensor:
 @torch.no_grad()
 def study(run_dir: str, horizon: int = 10) -> dict:
     from torchrl_softae.pipeline.catalog import get_env_entry, get_task
-    from torchrl_softae.pipeline.data import (ModelAccuracy, episode_seed, make_real_env, normalized_mse,
-                                              seed_everything, trivial_nmse)
-    from torchrl_softae.pipeline.evaluate import load_run, task_policy
+    from torchrl_softae.pipeline.data import ModelAccuracy, normalized_mse, trivial_nmse
+    from torchrl_softae.pipeline.evaluate import load_run, task_policy, task_rollouts
     from torchrl_softae.pipeline.policy import stored_transitions
     from torchrl_softae.pipeline.runs import RunDir
-    from torchrl_softae.tasks.base import TaskReward
 
     cfg, model, state = load_run(run_dir)
     if cfg.env != "SoftFish-v0":
@@ -65,15 +63,10 @@ def study(run_dir: str, horizon: int = 10) -> dict:
                          "identity": trivial_nmse(part, scale)["identity"] if len(part) else None}
 
     cfg.planner.horizon = horizon
-    task = get_task(entry, "forward")
-    real = make_real_env(entry, task.horizon)
-    real.append_transform(TaskReward(task))
-    s = episode_seed(0, 0)  # the first evaluation episode of the replication records
-    seed_everything(s)
-    policy = task_policy(cfg, model, task, real.action_spec, "mean", seed=s)
-    real.set_seed(s)
-    traj = real.rollout(task.horizon, policy, break_when_any_done=True)
-    real.close()
+    # the first evaluation episode of the replication records (evaluation seed 0)
+    rollout = task_rollouts(cfg.env, get_task(entry, "forward"), 1, 0, keep_trajectories=True,
+                            policy_for=lambda real, s, t: task_policy(cfg, model, t, real.action_spec, "mean", seed=s))
+    traj = rollout["trajectories"][0]
     predicted = model.predict(traj["observation"], traj["action"])[0]
     forward = {"return": float(traj["next", "reward"].sum()),
                "predicted_vx": float(predicted[:, VX].mean()),

@@ -37,16 +37,18 @@ def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, di
     return cfg, model.eval(), state
 
 
-def _task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for) -> dict:
+def task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for, keep_trajectories: bool = False) -> dict:
     """Roll out ``policy_for(env, episode_seed, episode_task)`` for ``episodes`` seeded episodes of
-    ``task`` on the real env with the task's reward: ``{"returns": [...], "metrics": [{...}, ...]}``.
+    ``task`` on the real env with the task's reward: ``{"returns": [...], "metrics": [{...}, ...],
+    "initial_states": [...]}``, and with ``keep_trajectories`` the episodes' ``(T,)`` rollout
+    tensordicts under ``"trajectories"`` (for a study that looks inside an episode).
 
     The one place that fixes the evaluation episodes: zero-shot controllers and the model-free
     references see the same initial states (and, for a task family, the same targets)."""
     real = make_real_env(get_env_entry(env), task.horizon)
     reward = TaskReward(task)
     real.append_transform(reward)
-    returns, metrics, starts = [], [], []
+    returns, metrics, starts, trajectories = [], [], [], []
     for i in range(episodes):
         s = episode_seed(seed, i)
         seed_everything(s)
@@ -61,8 +63,11 @@ def _task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for) -
         metrics.append(episode_task.metrics(traj))
         if episode_task is not task:
             metrics[-1].update({f"target_{k}": v for k, v in episode_task.params.items()})
+        if keep_trajectories:
+            trajectories.append(traj)
     real.close()
-    return {"returns": returns, "metrics": metrics, "initial_states": starts}
+    res = {"returns": returns, "metrics": metrics, "initial_states": starts}
+    return res | {"trajectories": trajectories} if keep_trajectories else res
 
 
 class _Advancing:
@@ -124,14 +129,14 @@ def zero_shot(
     if batched and episodes > 1 and task.instantiate is None and task.advance is None:
         res = _task_rollouts_batched(cfg.env, task, episodes, seed, planner)
     else:
-        res = _task_rollouts(cfg.env, task, episodes, seed, planner)
+        res = task_rollouts(cfg.env, task, episodes, seed, planner)
     if bar is not None:
         bar.close()
     return res
 
 
 def _task_rollouts_batched(env: str, task: Task, episodes: int, seed: int, policy_for) -> dict:
-    """:func:`_task_rollouts` with the episodes side by side: E real envs seeded like the
+    """:func:`task_rollouts` with the episodes side by side: E real envs seeded like the
     sequential episodes, one policy call per step for the ``(E,)`` batch of their states. An
     episode that ends stops stepping (its state keeps its slot in the batch)."""
     from torchrl.envs.utils import step_mdp
@@ -200,7 +205,7 @@ def reference_returns(env: str, task: str | Task, policy: str = "random", episod
         centre = (spec.space.low + spec.space.high) / 2
         return lambda td: td.set("action", centre.expand(*td.batch_size, *centre.shape).clone())
 
-    return _task_rollouts(env, task, episodes, seed, reference_policy)["returns"]
+    return task_rollouts(env, task, episodes, seed, reference_policy)["returns"]
 
 
 def evaluate_run(

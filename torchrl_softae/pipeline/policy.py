@@ -103,9 +103,9 @@ def policy_dir_name(task: str, propagation: str, seed: int, episodes_explored: i
 def evaluate_policy(env_id: str, task: Task, learner: PolicyLearner, episodes: int, seed: int) -> dict:
     """Real-env returns of the learner's deterministic policy on the evaluation episodes every
     zero-shot controller sees (same seeds, same initial states)."""
-    from torchrl_softae.pipeline.evaluate import _task_rollouts
+    from torchrl_softae.pipeline.evaluate import task_rollouts
 
-    res = _task_rollouts(env_id, task, episodes, seed, lambda real, s, t: learner.policy(deterministic=True))
+    res = task_rollouts(env_id, task, episodes, seed, lambda real, s, t: learner.policy(deterministic=True))
     res["mean_return"] = float(np.mean(res["returns"]))
     return res
 
