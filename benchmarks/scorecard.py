@@ -9,7 +9,7 @@ Each claim's comparison, test and thresholds are fixed here before the runs they
   S7 iCEM with the paper's horizon per task). Results at reduced settings are named in the row's
   ``why``, never judged.
 - Seeds: C1-C13 and C18 need >= 5 seeds of SoftAE, Random and H-UCRL where the claim compares
-  them (C6: >= 3 of Mean-AE and PETS-AE); otherwise the row is ``untested`` with the runs and
+  them (C6: >= 5 of Mean-AE and PETS-AE too, on each of its tasks); otherwise the row is ``untested`` with the runs and
   CPU-hours that are missing.
 - Test: one-sided Welch t-test per comparison (``scipy.stats.ttest_ind(equal_var=False)``),
   alpha = 0.05; ``p`` is the largest p of the claim's comparisons.
@@ -33,6 +33,15 @@ Each claim's comparison, test and thresholds are fixed here before the runs they
   holds when every named method fails, significantly; partly when some do, or all do without
   significance; fails when none does. A compound claim (C10, C12) holds when both parts hold,
   fails when SoftAE falls short of H-UCRL or Random does not fail, and is partly otherwise.
+- C6 (extended to the fish before any Mean-AE or PETS-AE fish run had started): on each of (ii)
+  (the 58D arm's final error), (iv) and (vi) (the fish's returns, at their sweeps' last budget)
+  with >= 5 seeds of SoftAE, Mean-AE and PETS-AE each (was >= 3 of Mean-AE and PETS-AE for the
+  arm's (ii); the issue asks for 5 where C6 needs them), one-sided Welch of SoftAE better than each;
+  the verdict over all tested comparisons as above, ``partly`` at most while a task is untested.
+- C7 (fixed before the 136D arm's seeds 3-4 had started): the 136D arm at 50 episodes, the 58D
+  rules: (i) SoftAE on par with H-UCRL as C4; (ii) SoftAE below Random and H-UCRL, one-sided Welch;
+  "Random degrades with the dimension": Random's mean final error on (i) and on (ii) above its 58D
+  one, one-sided Welch. Holds when the three parts hold, fails when one fails, partly otherwise.
 - SoPrA (C14-C16, on the simulated twin, not the real arm): >= 3 seeds (the paper's count), at 20
   exploration episodes; "comparable" on (ix) (C15): every method's mean final error within 5 mm of
   the best, the reach reward's tolerance (g = 1 within 5 mm: the task does not rank errors below it).
@@ -50,6 +59,7 @@ from scipy import stats
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "replication"
 ARM = RESULTS / "SoftArm-v1"
+ARM136 = RESULTS / "SoftArm136-v1"
 OUT_MD = ROOT / "docs" / "replication.md"
 OUT_JSON = ROOT / "benchmarks" / "results" / "replication" / "scorecard.json"
 ALPHA = 0.05
@@ -59,6 +69,12 @@ PAR_MM = 10.0
 BUDGET = 50  # arm exploration episodes of the judged runs (the paper's Fig. 2A/3B x axis ends there)
 #: one-core hours per 50-episode arm run, measured in this project's runs (explore + 3 evaluations)
 ARM_RUN_HOURS = {"random": 0.75, "softae": 0.95, "hucrl": 1.0, "mean-ae": 0.95, "pets-ae": 1.1}
+AE_METHODS = ("mean-ae", "pets-ae")
+AE_SEEDS = 5  # Mean-AE and PETS-AE seeds C6 needs per task
+#: C6's tasks: label, env, task, metric, its sweep file for Mean-AE and PETS-AE
+C6_TASKS = (("(ii)", "SoftArm-v1", "reach-far", "final error", "sweeps/replication/arm58.yaml"),
+            ("(iv)", "SoftFish-v0", "backward", "return", "sweeps/replication/fish_ae.yaml"),
+            ("(vi)", "SoftFishTarget-v0", "from-target", "return", "sweeps/replication/fish_target_ae.yaml"))
 SOPRA = RESULTS / "SoPrA-v0"
 SOPRA_BUDGET = 20
 SOPRA_SEEDS = 3
@@ -84,10 +100,11 @@ LOCOMOTION_PROBE = RESULTS / "locomotion_probe.json"
 PAPER_SETTINGS = "SoftArm-v1 (58D), paper preset (Tables S6, S7: 5 x 4 x 256, iCEM P=200 K=20 5 it. H=10), 50 episodes x 200 steps"
 
 
-def arm_results(budget: int = BUDGET) -> dict[str, list[dict]]:
-    """The committed 58D arm results at ``budget`` episodes that ran at the paper's preset, by method."""
+def arm_results(budget: int = BUDGET, directory: Path | None = None) -> dict[str, list[dict]]:
+    """The committed arm results (58D, or those in ``directory``) at ``budget`` episodes that ran
+    at the paper's preset, by method."""
     out: dict[str, list[dict]] = {}
-    for path in sorted(ARM.glob(f"*-ep{budget}.json")):
+    for path in sorted((directory or ARM).glob(f"*-ep{budget}.json")):
         r = json.loads(path.read_text())
         if _paper_preset(r["config"], horizon=10):
             out.setdefault(r["method"], []).append(r)
@@ -171,13 +188,14 @@ def probe_calibration(results: dict[str, dict]) -> tuple[float, int]:
     (env, method) pairs with finished runs in ``results`` (env -> method -> records). The probes ran
     beside two other runs on two cores, the sweeps' runs beside one, so a probe overstates a run's
     hours by about this ratio; 1 before any run has finished."""
-    ratios = [_measured_hours(env, runs) / probe_hours(env, m) for env, res in results.items() for m, runs in res.items()]
+    ratios = [_measured_hours(env, runs) / probe_hours(env, m) for env, res in results.items()
+              for m, runs in res.items() if m in NAMES]  # the methods the probes measured
     return (float(np.median(ratios)), len(ratios)) if ratios else (1.0, 0)
 
 
-def _measured_hours(env: str, runs: list[dict]) -> float:
-    """Mean one-core hours of ``runs`` (their records at the judged budget)."""
-    budget = _budget(env)
+def _measured_hours(env: str, runs: list[dict], budget: int | None = None) -> float:
+    """Mean one-core hours of ``runs`` (their records up to ``budget``, by default the judged one)."""
+    budget = budget or _budget(env)
     hours = []
     for r in runs:  # the run's exploration to the last budget and its evaluation at every budget
         records = [json.loads(p.read_text()) for p in (RESULTS / env).glob(f"{r['method']}*-s{r['seed']}-ep*.json")]
@@ -254,8 +272,9 @@ def _gap_text(g: dict, methods=("softae", "random", "hucrl")) -> str:
     return f"reference {g['reference']:.3g}; gap closed: {closed}"
 
 
-def locomotion_claims(results: dict[str, dict]) -> list[dict]:
-    """C8-C13 from the fish's and the leg's records (``results``: env -> method -> records)."""
+def locomotion_claims(results: dict[str, dict], calibration=None) -> list[dict]:
+    """C8-C13 from the fish's and the leg's records (``results``: env -> method -> records;
+    ``calibration``: a cached :func:`probe_calibration` of them, made here if not given)."""
     methods = ("softae", "random", "hucrl")
     claims = [  # id, claim, paper, env, task, kind, named methods
         ("C8", "fish (iii): SoftAE on par with H-UCRL trained on (iii)", "Fig. 2B", "SoftFish-v0", "forward", "par", ()),
@@ -269,7 +288,7 @@ def locomotion_claims(results: dict[str, dict]) -> list[dict]:
         ("C13", "leg (viii): H-UCRL and Random fail", "Fig. 2C", "MSKLeg-v0", "cw", "fail", ("hucrl", "random")),
     ]
     rows = []
-    calibration = functools.cache(lambda: probe_calibration(results))
+    calibration = calibration or functools.cache(lambda: probe_calibration(results))
     for cid, claim, paper, env, task, kind, named in claims:
         res = results[env]
         page = "leg" if env.startswith("MSK") else "fish"
@@ -339,12 +358,12 @@ def _fmt(values, digits=3) -> str:
     return f"{v.mean():.{digits}g} ± {v.std(ddof=1):.2g} (n={len(v)})" if len(v) > 1 else f"{v.mean():.{digits}g} (n={len(v)})"
 
 
-def _missing(res, methods) -> str | None:
+def _missing(res, methods, run_hours: dict = ARM_RUN_HOURS) -> str | None:
     """``None`` with enough seeds of every method, else the runs and CPU-hours missing."""
     short = {m: MIN_SEEDS - len(res.get(m, [])) for m in methods if len(res.get(m, [])) < MIN_SEEDS}
     if not short:
         return None
-    hours = sum(n * ARM_RUN_HOURS[m] for m, n in short.items())
+    hours = sum(n * run_hours[m] for m, n in short.items())
     runs = ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
     return f"needs >= {MIN_SEEDS} seeds at {BUDGET} episodes; missing {runs}: about {hours:.1f} CPU-hours in all, one core per run"
 
@@ -439,24 +458,6 @@ def arm_claims(res: dict) -> list[dict]:
                          f"{test_less}, SoftAE below each; a baseline fails above {FAIL_MM:g} mm", max(ps), verdict,
                          "fails: " + ", ".join(f"{m} {'yes' if f else 'no'}" for m, f in zip(("random", "hucrl"), fail))))
 
-    # C6 SoftAE >= Mean-AE, PETS-AE on (ii), (iv), (vi): the arm's (ii) only
-    ae = {m: res.get(m, []) for m in ("mean-ae", "pets-ae")}
-    enough = len(s) >= MIN_SEEDS and all(len(v) >= 3 for v in ae.values())
-    if not enough:
-        rows.append(_row("C6", "SoftAE >= Mean-AE and PETS-AE, clearest on (ii), (iv), (vi)", "Fig. S1",
-                         why="needs >= 5 SoftAE and >= 3 Mean-AE, PETS-AE seeds on the arm; fish (iv), (vi) not run "
-                             "at the paper's settings"))
-    else:
-        fs = _final_mm(s, "reach-far")
-        ps = [_less(fs, _final_mm(v, "reach-far")) for v in ae.values()]
-        ok = [np.mean(fs) <= np.mean(_final_mm(v, "reach-far")) for v in ae.values()]
-        verdict = _verdict(ok, [q < ALPHA for q in ps])
-        rows.append(_row("C6", "SoftAE >= Mean-AE and PETS-AE, clearest on (ii), (iv), (vi)", "Fig. S1",
-                         "(ii) final error " + ", ".join(f"{m} {_fmt(_final_mm(v, 'reach-far'))} mm" for m, v in ae.items())
-                         + f", SoftAE {_fmt(fs)} mm", f"{len(s)} / {len(ae['mean-ae'])} / {len(ae['pets-ae'])}",
-                         PAPER_SETTINGS, test_less + " on (ii) final error", max(ps),
-                         "partly" if verdict == "holds" else verdict,
-                         "only (ii) on the arm is tested: fish (iv) and (vi) are not run at the paper's settings"))
     return rows
 
 
@@ -519,12 +520,102 @@ def sopra_claims(res: dict) -> list[dict]:
     return rows
 
 
+def c6(arm: dict, locomotion: dict[str, dict], calibration) -> dict:
+    """SoftAE >= Mean-AE and PETS-AE on (ii), (iv), (vi): one-sided Welch of SoftAE better than
+    each on every task with enough seeds; ``partly`` at most while a task is untested, whose runs
+    and CPU-hours the row names (``calibration``: as for :func:`_locomotion_missing`)."""
+    claim, paper = "SoftAE >= Mean-AE and PETS-AE, clearest on (ii), (iv), (vi)", "Fig. S1"
+    parts, ns, settings, ps, oks, untested = [], [], [], [], [], []
+    for label, env, task, metric, sweep in C6_TASKS:
+        res = arm if env == "SoftArm-v1" else locomotion.get(env, {})
+        need = {"softae": MIN_SEEDS, **dict.fromkeys(AE_METHODS, AE_SEEDS)}
+        short = {m: n - len(res.get(m, [])) for m, n in need.items() if len(res.get(m, [])) < n}
+        if short:
+            ae = {m: n for m, n in short.items() if m in AE_METHODS}
+            text = f"{label} {env}: missing " + ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
+            if ae:
+                text += f"; Mean-AE and PETS-AE about {_c6_hours(env, res, ae, calibration):.0f} CPU-hours ({sweep})"
+            if "softae" in short:
+                text += f"; SoftAE's runs are {LOCOMOTION[env][0] if env in LOCOMOTION else sweep}'s"
+            untested.append(text)
+            continue
+        if env == "SoftArm-v1":
+            vals = {m: _final_mm(res[m], task) for m in need}
+            better = lambda a, b: _less(a, b)  # noqa: E731 - lower error is better
+            ok = [np.mean(vals["softae"]) <= np.mean(vals[m]) for m in AE_METHODS]
+            unit, setting = " mm", PAPER_SETTINGS
+        else:
+            vals = {m: _returns(res[m], task) for m in need}
+            better = lambda a, b: _less(b, a)  # noqa: E731 - higher return is better
+            ok = [np.mean(vals["softae"]) >= np.mean(vals[m]) for m in AE_METHODS]
+            unit, setting = "", _locomotion_settings(env)
+        ps += [better(vals["softae"], vals[m]) for m in AE_METHODS]
+        oks += ok
+        parts.append(f"{label} {metric} SoftAE {_fmt(vals['softae'])}{unit}, "
+                     + ", ".join(f"{m} {_fmt(vals[m])}{unit}" for m in AE_METHODS))
+        ns.append(f"{label} " + " / ".join(str(len(res[m])) for m in need))
+        settings.append(setting)
+    if not parts:
+        return _row("C6", claim, paper, why="; ".join(untested))
+    verdict = _verdict(oks, [q < ALPHA for q in ps])
+    if untested and verdict == "holds":
+        verdict = "partly"
+    why = "untested: " + "; ".join(untested) if untested else ""
+    return _row("C6", claim, paper, "; ".join(parts), "; ".join(ns), "; ".join(settings),
+                f"one-sided Welch, alpha = {ALPHA}, SoftAE better than each on each tested task", max(ps), verdict, why)
+
+
+def _c6_hours(env: str, res: dict, short: dict, calibration) -> float:
+    """CPU-hours of C6's missing runs on ``env``: the arm's measured hours per method; on the fish a
+    method's finished runs, else SoftAE's (finished runs, else the calibrated probe) times the arm's
+    ratio of that method's hours to SoftAE's."""
+    if env == "SoftArm-v1":
+        return sum(n * ARM_RUN_HOURS[m] for m, n in short.items())
+    softae = _measured_hours(env, res["softae"]) if res.get("softae") else probe_hours(env, "softae") * calibration()[0]
+    return sum(n * (_measured_hours(env, res[m]) if res.get(m) else softae * ARM_RUN_HOURS[m] / ARM_RUN_HOURS["softae"])
+               for m, n in short.items())
+
+
+def c7(res136: dict, res58: dict) -> dict:
+    """The 136D arm (Fig. 3C): (i) SoftAE on par with H-UCRL (C4's rule), (ii) SoftAE below Random
+    and H-UCRL, and Random's final errors on (i) and (ii) above its 58D ones."""
+    claim = "136D: SoftAE on par with H-UCRL on (i), best on (ii); Random degrades with the dimension"
+    methods = ("softae", "random", "hucrl")
+    hours = {m: _measured_hours("SoftArm136-v1", rs, BUDGET) for m, rs in res136.items()}
+    miss = _missing(res136, methods, {**ARM_RUN_HOURS, **hours})
+    if miss:
+        return _row("C7", claim, "Fig. 3C", why=f"SoftArm136-v1 {miss} (sweeps/replication/arm136.yaml), measured by "
+                    "each method's finished 136D runs")
+    close = {m: _final_mm(res136[m], "reach-close") for m in methods}
+    far = {m: _final_mm(res136[m], "reach-far") for m in methods}
+    # (i) on par, as C4
+    p_par = float(stats.ttest_ind(close["softae"], close["hucrl"], equal_var=False, alternative="greater").pvalue)
+    diff = np.mean(close["softae"]) - np.mean(close["hucrl"])
+    par = "holds" if diff <= PAR_MM else ("fails" if p_par < ALPHA else "partly")
+    # (ii) best
+    ps_far = [_less(far["softae"], far[m]) for m in ("random", "hucrl")]
+    best = _verdict([np.mean(far["softae"]) < np.mean(far[m]) for m in ("random", "hucrl")],
+                    [q < ALPHA for q in ps_far])
+    # Random degrades: its 136D errors above its 58D ones
+    r58 = {task: _final_mm(res58.get("random", []), task) for task in ("reach-close", "reach-far")}
+    r136 = {"reach-close": close["random"], "reach-far": far["random"]}
+    ps_deg = [_less(r58[t], r136[t]) for t in r58]
+    degrades = _verdict([np.mean(r58[t]) < np.mean(r136[t]) for t in r58], [q < ALPHA for q in ps_deg])
+    parts = {"(i) on par": par, "(ii) best": best, "Random degrades": degrades}
+    verdict = ("fails" if "fails" in parts.values() else "holds" if set(parts.values()) == {"holds"} else "partly")
+    ours = ("(i) final error SoftAE " + _fmt(close["softae"]) + " mm, H-UCRL " + _fmt(close["hucrl"]) + " mm; (ii) "
+            + ", ".join(f"{NAMES[m]} {_fmt(far[m])} mm" for m in methods) + "; Random 58D -> 136D: "
+            + ", ".join(f"{t} {np.mean(r58[t]):.3g} -> {np.mean(r136[t]):.3g} mm" for t in r58))
+    return _row("C7", claim, "Fig. 3C", ours, " / ".join(str(len(res136[m])) for m in methods) + f" (58D Random "
+                f"{len(res58.get('random', []))})", PAPER_SETTINGS.replace("SoftArm-v1 (58D)", "SoftArm136-v1 (136D)"),
+                f"(i) as C4; (ii) one-sided Welch, alpha = {ALPHA}, SoftAE below each; Random's 136D final error "
+                f"above its 58D one on (i) and (ii), one-sided Welch", max([p_par] + ps_far + ps_deg), verdict,
+                "; ".join(f"{k}: {v}" for k, v in parts.items()))
+
+
 def untested_claims() -> list[dict]:
     """The claims no paper-settings run judges yet, with what is missing."""
     return [
-        _row("C7", "136D: SoftAE on par with H-UCRL on (i), best on (ii); Random degrades with the dimension", "Fig. 3C",
-             why="SoftArm136-v1 has 3 seeds per method at the paper preset (docs/results/soft-arm.md); 6 more runs "
-                 "(SoftAE, Random, H-UCRL x 2), about 1.5 CPU-hours each"),
         _row("C17", "SoftAE-MBPO on par with MBPO/MBPO-TS on (i), better on unseen tasks; Random lags", "Fig. S2",
              why="SAC at Table S8's sizes (3 x 1024, 20 updates per real transition) was not run: "
                  "benchmarks/results/mbpo_cost_58x12.json measures one SAC update and one imagined-rollout round "
@@ -565,9 +656,12 @@ def c18(arm_row: dict, sopra: dict, locomotion: dict[str, dict]) -> dict:
 
 
 def scorecard() -> list[dict]:
-    arm, sopra = arm_claims(arm_results()), sopra_results()
+    arm_res, sopra = arm_results(), sopra_results()
+    arm = arm_claims(arm_res)
     locomotion = {env: locomotion_results(env) for env in LOCOMOTION}
-    rows = arm + sopra_claims(sopra) + locomotion_claims(locomotion) + untested_claims()
+    calibration = functools.cache(lambda: probe_calibration(locomotion))
+    rows = (arm + sopra_claims(sopra) + locomotion_claims(locomotion, calibration) + untested_claims()
+            + [c6(arm_res, locomotion, calibration), c7(arm_results(directory=ARM136), arm_res)])
     rows.append(c18(next(r for r in arm if r["id"] == "C1"), sopra, locomotion))
     return sorted(rows, key=lambda r: int(r["id"][1:]))
 
@@ -577,9 +671,10 @@ def markdown(rows: list[dict]) -> str:
              "The paper's 18 claims, each with a verdict decided by the rules in `benchmarks/scorecard.py`, "
              "fixed there before the H-UCRL seeds that C2-C5 wait for finished (C1 and C6 are judged on runs "
              "that had finished by then) and, for the SoPrA twin (C14-C16, C18's twin part), before any of its "
-             "runs at the paper's settings had finished (commit d821389). Regenerate with `python benchmarks/scorecard.py`; the same rows are "
+             "runs at the paper's settings had finished (commit d821389); C6's fish tasks and C7 before the runs they wait for "
+             "had started. Regenerate with `python benchmarks/scorecard.py`; the same rows are "
              "in `benchmarks/results/replication/scorecard.json`.", "",
-             f"Rules: paper settings only; >= {MIN_SEEDS} seeds of each compared method (3 of Mean-AE and PETS-AE); "
+             f"Rules: paper settings only; >= {MIN_SEEDS} seeds of each compared method (C6: Mean-AE and PETS-AE too); "
              f"one-sided Welch t-tests at alpha = {ALPHA} (p: the largest of a claim's tests); a reaching task "
              f"\"fails\" above a {FAIL_MM:g} mm mean final error; \"on par\" within {PAR_MM:g} mm; model errors as "
              "ratios to Random's (our held-out set is not the paper's); fish and leg tasks (C8-C13, rules fixed "
