@@ -438,9 +438,10 @@ def plot_budgets(records: list[dict], out_dir: str | Path) -> list[Path]:
         ncol = min(len(legend), 2 * cols)  # about 1.7 inches per entry: the figure's width
         fig.legend(list(legend.values()), list(legend), loc="lower center", ncol=ncol, fontsize=8)
         bottom = (0.15 + 0.25 * -(-len(legend) // ncol)) / fig.get_figheight()  # the legend's rows
-        fig.suptitle(f"{env}: against the exploration budget; thin lines: each seed, thick: the mean over seeds",
+        # two lines: one would outgrow a two-column figure with a long env id
+        fig.suptitle(f"{env} against the exploration budget\nthin lines: each seed; thick: the mean over seeds",
                      fontsize=10)
-        written.append(_save(fig, out_dir / f"{env}_budgets.png", rect=(0, bottom, 1, 0.97)))
+        written.append(_save(fig, out_dir / f"{env}_budgets.png", rect=(0, bottom, 1, 0.95)))
     return written
 
 
