@@ -66,6 +66,7 @@ def coverage_heatmaps(counts: dict, edges, axis_labels, title: str, path: Path,
     ``edges = (x_edges, y_edges)``), on the same (log) colour scale, one colour bar labelled
     ``unit``; ``markers`` (``{label: (x, y)}``, e.g. task targets) are drawn on every panel."""
     from matplotlib.colors import LogNorm
+    from matplotlib.ticker import MaxNLocator
 
     plt = _plt()
     counts = {k: np.asarray(c, dtype=float) for k, c in counts.items()}
@@ -83,6 +84,7 @@ def coverage_heatmaps(counts: dict, edges, axis_labels, title: str, path: Path,
         ax.set_title(label, fontsize=10)
         ax.set_xlabel(axis_labels[0])
     axes[0][0].set_ylabel(axis_labels[1])
+    axes[0][0].xaxis.set_major_locator(MaxNLocator(5))  # shared: a wide range's labels ran into each other
     if markers:
         axes[0][0].legend(fontsize=7, loc="lower left")
     fig.suptitle(title, fontsize=11)
