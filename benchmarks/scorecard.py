@@ -91,7 +91,8 @@ LOCOMOTION = {
     "MSKLeg-v0": ("sweeps/replication/leg.yaml", 500, 100, "10D musculoskeletal leg, (vii)-(viii)"),
 }
 #: how the rows name the compared methods
-NAMES = {"softae": "SoftAE", "random": "Random", "hucrl": "H-UCRL"}
+NAMES = {"softae": "SoftAE", "random": "Random", "hucrl": "H-UCRL", "mean-ae": "Mean-AE", "pets-ae": "PETS-AE"}
+PROBED = ("softae", "random", "hucrl")  # the methods the locomotion probes price (Random plans none)
 LOCOMOTION_DEPARTURE = "a MuJoCo proxy of the paper's robot (its physics is ours: docs/results/{page}.md)"
 FAIL_GAP = 0.5  # a method fails a task when it closes less than this fraction of the task's gap
 PAR_GAP = 0.1  # "on par": SoftAE at most this fraction of the gap below H-UCRL
@@ -189,7 +190,7 @@ def probe_calibration(results: dict[str, dict]) -> tuple[float, int]:
     beside two other runs on two cores, the sweeps' runs beside one, so a probe overstates a run's
     hours by about this ratio; 1 before any run has finished."""
     ratios = [_measured_hours(env, runs) / probe_hours(env, m) for env, res in results.items()
-              for m, runs in res.items() if m in NAMES]  # the methods the probes measured
+              for m, runs in res.items() if m in PROBED]
     return (float(np.median(ratios)), len(ratios)) if ratios else (1.0, 0)
 
 
@@ -534,7 +535,8 @@ def c6(arm: dict, locomotion: dict[str, dict], calibration) -> dict:
             ae = {m: n for m, n in short.items() if m in AE_METHODS}
             text = f"{label} {env}: missing " + ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
             if ae:
-                text += f"; Mean-AE and PETS-AE about {_c6_hours(env, res, ae, calibration):.0f} CPU-hours ({sweep})"
+                text += (f"; {' and '.join(NAMES[m] for m in ae)} about "
+                         f"{_c6_hours(env, res, ae, calibration):.0f} CPU-hours ({sweep})")
             if "softae" in short:
                 text += f"; SoftAE's runs are {LOCOMOTION[env][0] if env in LOCOMOTION else sweep}'s"
             untested.append(text)
