@@ -92,7 +92,7 @@ LOCOMOTION = {
 }
 #: how the rows name the compared methods
 NAMES = {"softae": "SoftAE", "random": "Random", "hucrl": "H-UCRL", "mean-ae": "Mean-AE", "pets-ae": "PETS-AE"}
-PROBED = ("softae", "random", "hucrl")  # the methods the locomotion probes price (Random plans none)
+METHODS = ("softae", "random", "hucrl")  # the methods every robot's claims compare, >= MIN_SEEDS each
 LOCOMOTION_DEPARTURE = "a MuJoCo proxy of the paper's robot (its physics is ours: docs/results/{page}.md)"
 FAIL_GAP = 0.5  # a method fails a task when it closes less than this fraction of the task's gap
 PAR_GAP = 0.1  # "on par": SoftAE at most this fraction of the gap below H-UCRL
@@ -190,7 +190,7 @@ def probe_calibration(results: dict[str, dict]) -> tuple[float, int]:
     beside two other runs on two cores, the sweeps' runs beside one, so a probe overstates a run's
     hours by about this ratio; 1 before any run has finished."""
     ratios = [_measured_hours(env, runs) / probe_hours(env, m) for env, res in results.items()
-              for m, runs in res.items() if m in PROBED]
+              for m, runs in res.items() if m in METHODS]  # the probes price these (Random plans none)
     return (float(np.median(ratios)), len(ratios)) if ratios else (1.0, 0)
 
 
@@ -267,7 +267,7 @@ def _par(res: dict, g: dict, task: str) -> tuple[str, float]:
     return ("short" if p < ALPHA else "unclear"), p
 
 
-def _gap_text(g: dict, methods=("softae", "random", "hucrl")) -> str:
+def _gap_text(g: dict, methods=METHODS) -> str:
     closed = ", ".join(f"{NAMES[m]} {g['closed'][m]:.2f}" if np.isfinite(g["closed"][m]) else f"{NAMES[m]} -"
                        for m in methods)
     return f"reference {g['reference']:.3g}; gap closed: {closed}"
@@ -276,7 +276,7 @@ def _gap_text(g: dict, methods=("softae", "random", "hucrl")) -> str:
 def locomotion_claims(results: dict[str, dict], calibration=None) -> list[dict]:
     """C8-C13 from the fish's and the leg's records (``results``: env -> method -> records;
     ``calibration``: a cached :func:`probe_calibration` of them, made here if not given)."""
-    methods = ("softae", "random", "hucrl")
+    methods = METHODS
     claims = [  # id, claim, paper, env, task, kind, named methods
         ("C8", "fish (iii): SoftAE on par with H-UCRL trained on (iii)", "Fig. 2B", "SoftFish-v0", "forward", "par", ()),
         ("C9", "fish (iv): H-UCRL fails", "Fig. 2B", "SoftFish-v0", "backward", "fail", ("hucrl",)),
@@ -413,7 +413,7 @@ def arm_claims(res: dict) -> list[dict]:
                          max(ps), _verdict(ok, [q < ALPHA for q in ps])))
 
     # C3 coverage: SoftAE > Random, H-UCRL
-    miss = _missing(res, ["softae", "random", "hucrl"])
+    miss = _missing(res, METHODS)
     if miss:
         rows.append(_row("C3", "coverage: SoftAE > Random, H-UCRL", "Fig. 3A",
                          f"SoftAE {_fmt(_coverage(s))}, Random {_fmt(_coverage(r))}" if s and r else "-", why=miss))
@@ -441,7 +441,7 @@ def arm_claims(res: dict) -> list[dict]:
                          f"if above by more with one-sided Welch p < {ALPHA}", p, verdict))
 
     # C5 (ii) reach-far: SoftAE best, Random and H-UCRL fail
-    miss = _missing(res, ["softae", "random", "hucrl"])
+    miss = _missing(res, METHODS)
     far = {m: _final_mm(x, "reach-far") for m, x in (("softae", s), ("random", r), ("hucrl", h)) if x}
     ours = ", ".join(f"{m} {_fmt(v)} mm" for m, v in far.items())
     if miss:
@@ -464,7 +464,7 @@ def arm_claims(res: dict) -> list[dict]:
 
 def sopra_claims(res: dict) -> list[dict]:
     """C14-C16 on the twin: the same 20 targets, (ix) and (x), and tracking, at 20 episodes."""
-    methods = ("softae", "random", "hucrl")
+    methods = METHODS
     short = {m: SOPRA_SEEDS - len(res.get(m, [])) for m in methods if len(res.get(m, [])) < SOPRA_SEEDS}
     claims = [("C14", "SoPrA, 20 targets: SoftAE best (final error 2.00 vs 3.82 vs 10.15 mm)", "Fig. 4D: 2.00 / 3.82 / "
                "10.15 mm mean, 4.70 / 9.57 / 49.41 mm max (SoftAE / Random / H-UCRL, real arm)"),
@@ -582,7 +582,7 @@ def c7(res136: dict, res58: dict) -> dict:
     """The 136D arm (Fig. 3C): (i) SoftAE on par with H-UCRL (C4's rule), (ii) SoftAE below Random
     and H-UCRL, and Random's final errors on (i) and (ii) above its 58D ones."""
     claim = "136D: SoftAE on par with H-UCRL on (i), best on (ii); Random degrades with the dimension"
-    methods = ("softae", "random", "hucrl")
+    methods = METHODS
     hours = {m: _measured_hours("SoftArm136-v1", rs, BUDGET) for m, rs in res136.items()}
     miss = _missing(res136, methods, {**ARM_RUN_HOURS, **hours})
     if miss:
