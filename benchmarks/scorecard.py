@@ -195,14 +195,21 @@ def probe_calibration(results: dict[str, dict]) -> tuple[float, int]:
 
 
 def _measured_hours(env: str, runs: list[dict], budget: int | None = None) -> float:
-    """Mean one-core hours of ``runs`` (their records up to ``budget``, by default the judged one)."""
+    """Mean CPU-hours of ``runs`` (their records up to ``budget``, by default the judged one)."""
     budget = budget or _budget(env)
     hours = []
     for r in runs:  # the run's exploration to the last budget and its evaluation at every budget
         records = [json.loads(p.read_text()) for p in (RESULTS / env).glob(f"{r['method']}*-s{r['seed']}-ep*.json")]
-        evaluations = sum(rec["seconds"]["evaluate"] for rec in records if rec["budget"] <= budget)
-        hours.append((r["seconds"]["explore"] + evaluations) / 3600)
+        evaluations = sum(_seconds(rec, "evaluate") for rec in records if rec["budget"] <= budget)
+        hours.append((_seconds(r, "explore") + evaluations) / 3600)
     return float(np.mean(hours))
+
+
+def _seconds(record: dict, part: str) -> float:
+    """The CPU seconds a record spent on ``part`` (``explore`` or ``evaluate``); the wall-clock
+    ones for records written before the CPU field, where a pause counts as compute."""
+    cpu = record.get("cpu_seconds", {}).get(part)
+    return record["seconds"][part] if cpu is None else cpu
 
 
 def _locomotion_missing(env: str, res: dict, methods, calibration) -> str | None:

@@ -328,6 +328,14 @@ def test_the_fish_and_leg_claims_follow_their_rules(tmp_path, monkeypatch):
     assert rows["C12"]["verdict"] == rows["C13"]["verdict"] == "untested"
     assert "1 of random (has 4): about 1 CPU-hours" in rows["C12"]["why"]
     assert "measured by the finished runs" in rows["C12"]["why"]
+    # records with CPU seconds are priced by them, not by the wall clock (which counts pauses)
+    for seed in range(4):
+        path = tmp_path / "MSKLeg-v0" / f"random-s{seed}-ep50.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()),
+                                    "cpu_seconds": {"explore": 9000.0, "evaluate": 900.0}}))
+    results["MSKLeg-v0"] = scorecard.locomotion_results("MSKLeg-v0")
+    rows = {r["id"]: r for r in scorecard.locomotion_claims(results)}
+    assert "1 of random (has 4): about 3 CPU-hours" in rows["C12"]["why"]
 
 
 def _arm_record(method, seed, close, far):

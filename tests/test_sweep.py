@@ -424,6 +424,10 @@ def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(
     assert "heldout_nmse_identity" in rec["accuracy"] and rec["coverage"] == rec["history"][-1]["coverage"]
     assert len(rec["tasks"]["swingup"]["returns"]) == 1 and len(rec["tasks"]["spin"]["returns"]) == 2
     assert rec["tasks"]["swingup"]["planner_horizon"] == 2
+    # the CPU seconds beside the wall clock's: the exploration's are its episodes' sum
+    cpu = rec["cpu_seconds"]
+    assert cpu["explore"] == pytest.approx(sum(r["cpu_seconds"] for r in rec["history"])) and cpu["explore"] > 0
+    assert cpu["evaluate"] > 0 and set(cpu) == set(rec["seconds"])
     # the model-free references on the same episodes, with the record
     from torchrl_softae.pipeline.evaluate import reference_returns
 

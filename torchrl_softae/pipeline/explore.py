@@ -210,7 +210,7 @@ class Explorer:
         cfg = self.cfg
         s = episode_seed(cfg.seed, n)
         seed_everything(s)
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         step_bar = None
         if self.progress:
             from tqdm.auto import tqdm
@@ -245,6 +245,9 @@ class Explorer:
         t1 = time.perf_counter()
         report = trainer.fit(rb, generator=torch.Generator().manual_seed(s))
         t_train = time.perf_counter() - t1
+        # this process's CPU time (every thread) over collect and train: unlike the wall clock,
+        # it costs nothing while the run is paused or waits for a shared core
+        cpu_seconds = time.process_time() - cpu0
 
         stored = rb.storage[: len(rb)]
         policy_row = {}
@@ -259,6 +262,7 @@ class Explorer:
             "env_faults": int(env.base_env.num_faults - faults_before),
             "collect_seconds": t_collect,
             "train_seconds": t_train,
+            "cpu_seconds": cpu_seconds,
             "plan_ms_per_step": 1e3 * getattr(policy, "seconds", 0.0) / max(getattr(policy, "calls", 0), 1),
             "train_loss": report.train_loss[-1] if report.train_loss else float("nan"),
             "val_mse": report.final_val_mse,

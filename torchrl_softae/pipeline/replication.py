@@ -161,7 +161,7 @@ def run_budgets(trial, cfg, on_episode=None) -> list[dict]:
                               "explore a new run dir to evaluate it")
         cfg_b = dataclasses.replace(cfg, episodes=budget)
         history = explore(cfg_b, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         overrides = [f"planner.{k}={v}" for k, v in (ev.get("planner") or {}).items()] or None
         res = evaluate_run(trial.run_dir, tasks=ev["task_names"], episodes=int(ev.get("episodes", 3)),
                            task_episodes=block["task_episodes"], propagation=ev.get("propagation", "mean"),
@@ -179,6 +179,11 @@ def run_budgets(trial, cfg, on_episode=None) -> list[dict]:
             **({"references": res["references"]} if "references" in res else {}),
             "seconds": {"explore": sum(r["collect_seconds"] + r["train_seconds"] for r in history),
                         "evaluate": time.perf_counter() - t0},
+            # CPU seconds of the same work; a pause costs none. Episodes explored by code older than
+            # the field have none, and then neither has the record's exploration.
+            "cpu_seconds": {"explore": (sum(r["cpu_seconds"] for r in history)
+                                        if all("cpu_seconds" in r for r in history) else None),
+                            "evaluate": time.process_time() - cpu0},
             "history": history,
         }
         path = record_path(block, trial.run_dir, budget)
