@@ -283,7 +283,6 @@ def _gap_text(g: dict, methods=METHODS) -> str:
 def locomotion_claims(results: dict[str, dict], calibration=None) -> list[dict]:
     """C8-C13 from the fish's and the leg's records (``results``: env -> method -> records;
     ``calibration``: a cached :func:`probe_calibration` of them, made here if not given)."""
-    methods = METHODS
     claims = [  # id, claim, paper, env, task, kind, named methods
         ("C8", "fish (iii): SoftAE on par with H-UCRL trained on (iii)", "Fig. 2B", "SoftFish-v0", "forward", "par", ()),
         ("C9", "fish (iv): H-UCRL fails", "Fig. 2B", "SoftFish-v0", "backward", "fail", ("hucrl",)),
@@ -301,15 +300,15 @@ def locomotion_claims(results: dict[str, dict], calibration=None) -> list[dict]:
         res = results[env]
         page = "leg" if env.startswith("MSK") else "fish"
         departure = LOCOMOTION_DEPARTURE.format(page=page)
-        miss = _locomotion_missing(env, res, methods, calibration)
-        so_far = ", ".join(f"{NAMES[m]} {_fmt(_returns(res[m], task))}" for m in methods if res.get(m))
+        miss = _locomotion_missing(env, res, METHODS, calibration)
+        so_far = ", ".join(f"{NAMES[m]} {_fmt(_returns(res[m], task))}" for m in METHODS if res.get(m))
         if miss:
             rows.append(_row(cid, claim, paper, f"{task} return so far: {so_far}" if so_far else "-",
                              why=f"{miss}; {departure}"))
             continue
-        g = task_gap(res, task, methods)
+        g = task_gap(res, task, METHODS)
         ours = f"{task} return {so_far}; {_gap_text(g)}"
-        n = " / ".join(str(len(res[m])) for m in methods)
+        n = " / ".join(str(len(res[m])) for m in METHODS)
         fail_test = (f"fails: closes < {FAIL_GAP:g} of the gap from the better model-free reference to the best "
                      f"method, one-sided Welch below the best, alpha = {ALPHA}")
         par_test = f"on par: SoftAE at most {PAR_GAP:g} of the gap below H-UCRL; short: below by more, one-sided Welch"
@@ -471,8 +470,7 @@ def arm_claims(res: dict) -> list[dict]:
 
 def sopra_claims(res: dict) -> list[dict]:
     """C14-C16 on the twin: the same 20 targets, (ix) and (x), and tracking, at 20 episodes."""
-    methods = METHODS
-    short = {m: SOPRA_SEEDS - len(res.get(m, [])) for m in methods if len(res.get(m, [])) < SOPRA_SEEDS}
+    short = {m: SOPRA_SEEDS - len(res.get(m, [])) for m in METHODS if len(res.get(m, [])) < SOPRA_SEEDS}
     claims = [("C14", "SoPrA, 20 targets: SoftAE best (final error 2.00 vs 3.82 vs 10.15 mm)", "Fig. 4D: 2.00 / 3.82 / "
                "10.15 mm mean, 4.70 / 9.57 / 49.41 mm max (SoftAE / Random / H-UCRL, real arm)"),
               ("C15", "SoPrA (ix) comparable for all, (x) SoftAE best", "Fig. 4B-C"),
@@ -483,12 +481,12 @@ def sopra_claims(res: dict) -> list[dict]:
                f"{runs}: about {sum(short.values()) * SOPRA_RUN_HOURS:.1f} CPU-hours in all, one core per run. On the twin, "
                "not the real arm.")
         return [_row(cid, claim, paper, why=why) for cid, claim, paper in claims]
-    s, r, h = (res[m] for m in methods)
+    s, r, h = (res[m] for m in METHODS)
     n = f"{len(s)} / {len(r)} / {len(h)}"
     rows = []
 
     def softae_below(task, metric):
-        vals = {m: _task_metric(res[m], task, metric) for m in methods}
+        vals = {m: _task_metric(res[m], task, metric) for m in METHODS}
         ps = [_less(vals["softae"], vals[m]) for m in ("random", "hucrl")]
         ok = [np.mean(vals["softae"]) < np.mean(vals[m]) for m in ("random", "hucrl")]
         return vals, ps, ok
@@ -496,22 +494,22 @@ def sopra_claims(res: dict) -> list[dict]:
     test = f"one-sided Welch, alpha = {ALPHA}, SoftAE below each"
     vals, ps, ok = softae_below("reach-any", "final_error_mm")
     worst = {m: [max(x["final_error_mm"] for x in rec["tasks"]["reach-any"]["metrics"]) for rec in res[m]]
-             for m in methods}
+             for m in METHODS}
     rows.append(_row(claims[0][0], claims[0][1], claims[0][2],
-                     "mean final error " + ", ".join(f"{NAMES[m]} {_fmt(vals[m])} mm" for m in methods)
-                     + "; max " + ", ".join(f"{NAMES[m]} {_fmt(worst[m])} mm" for m in methods),
+                     "mean final error " + ", ".join(f"{NAMES[m]} {_fmt(vals[m])} mm" for m in METHODS)
+                     + "; max " + ", ".join(f"{NAMES[m]} {_fmt(worst[m])} mm" for m in METHODS),
                      n, SOPRA_SETTINGS, test + " (per seed: the mean over the 20 targets)", max(ps),
                      _verdict(ok, [q < ALPHA for q in ps]), "on the twin, not the real arm"))
 
-    close = {m: _task_metric(res[m], "reach-close", "final_error_mm") for m in methods}
+    close = {m: _task_metric(res[m], "reach-close", "final_error_mm") for m in METHODS}
     spread = max(np.mean(v) for v in close.values()) - min(np.mean(v) for v in close.values())
     far, ps, ok = softae_below("reach-far", "final_error_mm")
     verdict = _verdict(ok, [q < ALPHA for q in ps])
     if spread > SOPRA_PAR_MM:
         verdict = "fails" if verdict == "fails" else "partly"
     rows.append(_row(claims[1][0], claims[1][1], claims[1][2],
-                     "(ix) final error " + ", ".join(f"{NAMES[m]} {_fmt(close[m])} mm" for m in methods)
-                     + f" (spread {spread:.1f} mm); (x) " + ", ".join(f"{NAMES[m]} {_fmt(far[m])} mm" for m in methods),
+                     "(ix) final error " + ", ".join(f"{NAMES[m]} {_fmt(close[m])} mm" for m in METHODS)
+                     + f" (spread {spread:.1f} mm); (x) " + ", ".join(f"{NAMES[m]} {_fmt(far[m])} mm" for m in METHODS),
                      n, SOPRA_SETTINGS, f"(ix): means within {SOPRA_PAR_MM:g} mm of each other; (x): {test}", max(ps),
                      verdict, "on the twin, not the real arm; (ix) comparable: "
                      + ("yes" if spread <= SOPRA_PAR_MM else "no")))
@@ -519,7 +517,7 @@ def sopra_claims(res: dict) -> list[dict]:
     parts, pss, oks = [], [], []
     for shape in ("square", "lemniscate"):
         v, ps, ok = softae_below(f"track-{shape}", "mean_error_mm")
-        parts.append(f"{shape} " + ", ".join(f"{NAMES[m]} {_fmt(v[m])} mm" for m in methods))
+        parts.append(f"{shape} " + ", ".join(f"{NAMES[m]} {_fmt(v[m])} mm" for m in METHODS))
         pss += ps
         oks += ok
     rows.append(_row(claims[2][0], claims[2][1], claims[2][2], "mean tracking error: " + "; ".join(parts), n,
@@ -589,14 +587,13 @@ def c7(res136: dict, res58: dict) -> dict:
     """The 136D arm (Fig. 3C): (i) SoftAE on par with H-UCRL (C4's rule), (ii) SoftAE below Random
     and H-UCRL, and Random's final errors on (i) and (ii) above its 58D ones."""
     claim = "136D: SoftAE on par with H-UCRL on (i), best on (ii); Random degrades with the dimension"
-    methods = METHODS
     hours = {m: _measured_hours("SoftArm136-v1", rs, BUDGET) for m, rs in res136.items()}
-    miss = _missing(res136, methods, {**ARM_RUN_HOURS, **hours})
+    miss = _missing(res136, METHODS, {**ARM_RUN_HOURS, **hours})
     if miss:
         return _row("C7", claim, "Fig. 3C", why=f"SoftArm136-v1 {miss} (sweeps/replication/arm136.yaml), measured by "
                     "each method's finished 136D runs")
-    close = {m: _final_mm(res136[m], "reach-close") for m in methods}
-    far = {m: _final_mm(res136[m], "reach-far") for m in methods}
+    close = {m: _final_mm(res136[m], "reach-close") for m in METHODS}
+    far = {m: _final_mm(res136[m], "reach-far") for m in METHODS}
     # (i) on par, as C4
     p_par = float(stats.ttest_ind(close["softae"], close["hucrl"], equal_var=False, alternative="greater").pvalue)
     diff = np.mean(close["softae"]) - np.mean(close["hucrl"])
@@ -613,9 +610,9 @@ def c7(res136: dict, res58: dict) -> dict:
     parts = {"(i) on par": par, "(ii) best": best, "Random degrades": degrades}
     verdict = ("fails" if "fails" in parts.values() else "holds" if set(parts.values()) == {"holds"} else "partly")
     ours = ("(i) final error SoftAE " + _fmt(close["softae"]) + " mm, H-UCRL " + _fmt(close["hucrl"]) + " mm; (ii) "
-            + ", ".join(f"{NAMES[m]} {_fmt(far[m])} mm" for m in methods) + "; Random 58D -> 136D: "
+            + ", ".join(f"{NAMES[m]} {_fmt(far[m])} mm" for m in METHODS) + "; Random 58D -> 136D: "
             + ", ".join(f"{t} {np.mean(r58[t]):.3g} -> {np.mean(r136[t]):.3g} mm" for t in r58))
-    return _row("C7", claim, "Fig. 3C", ours, " / ".join(str(len(res136[m])) for m in methods) + f" (58D Random "
+    return _row("C7", claim, "Fig. 3C", ours, " / ".join(str(len(res136[m])) for m in METHODS) + f" (58D Random "
                 f"{len(res58.get('random', []))})", PAPER_SETTINGS.replace("SoftArm-v1 (58D)", "SoftArm136-v1 (136D)"),
                 f"(i) as C4; (ii) one-sided Welch, alpha = {ALPHA}, SoftAE below each; Random's 136D final error "
                 f"above its 58D one on (i) and (ii), one-sided Welch", max([p_par] + ps_far + ps_deg), verdict,
