@@ -194,6 +194,12 @@ def probe_calibration(results: dict[str, dict]) -> tuple[float, int]:
     return (float(np.median(ratios)), len(ratios)) if ratios else (1.0, 0)
 
 
+def _cpu_hours(hours: float, fmt: str = ".0f") -> str:
+    """``hours`` as prose: "1 CPU-hour", "14 CPU-hours", "1.5 CPU-hours"."""
+    text = f"{hours:{fmt}}"
+    return f"{text} CPU-hour{'' if text == '1' else 's'}"
+
+
 def _measured_hours(env: str, runs: list[dict], budget: int | None = None) -> float:
     """Mean CPU-hours of ``runs`` (their records up to ``budget``, by default the judged one)."""
     budget = budget or _budget(env)
@@ -233,7 +239,7 @@ def _locomotion_missing(env: str, res: dict, methods, calibration) -> str | None
         measured = (f"estimated from {probes}" if not any(has_runs)
                     else f"measured by a method's finished runs where it has some, else estimated from {probes}")
     return (f"needs >= {MIN_SEEDS} seeds at {_budget(env)} episodes ({LOCOMOTION[env][0]}); missing {runs}: "
-            f"about {hours:.0f} CPU-hours in all, one core per run ({measured})")
+            f"about {_cpu_hours(hours)} in all, one core per run ({measured})")
 
 
 def _returns(rs, task):
@@ -372,7 +378,7 @@ def _missing(res, methods, run_hours: dict = ARM_RUN_HOURS) -> str | None:
         return None
     hours = sum(n * run_hours[m] for m, n in short.items())
     runs = ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
-    return f"needs >= {MIN_SEEDS} seeds at {BUDGET} episodes; missing {runs}: about {hours:.1f} CPU-hours in all, one core per run"
+    return f"needs >= {MIN_SEEDS} seeds at {BUDGET} episodes; missing {runs}: about {_cpu_hours(hours, '.1f')} in all, one core per run"
 
 
 def _verdict(directions_ok: list[bool], significant: list[bool]) -> str:
@@ -478,7 +484,7 @@ def sopra_claims(res: dict) -> list[dict]:
     if short:
         runs = ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
         why = (f"needs >= {SOPRA_SEEDS} seeds at {SOPRA_BUDGET} episodes (sweeps/replication/sopra.yaml); missing "
-               f"{runs}: about {sum(short.values()) * SOPRA_RUN_HOURS:.1f} CPU-hours in all, one core per run. On the twin, "
+               f"{runs}: about {_cpu_hours(sum(short.values()) * SOPRA_RUN_HOURS, '.1f')} in all, one core per run. On the twin, "
                "not the real arm.")
         return [_row(cid, claim, paper, why=why) for cid, claim, paper in claims]
     s, r, h = (res[m] for m in METHODS)
@@ -541,7 +547,7 @@ def c6(arm: dict, locomotion: dict[str, dict], calibration) -> dict:
             text = f"{label} {env}: missing " + ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
             if ae:
                 text += (f"; {' and '.join(NAMES[m] for m in ae)} about "
-                         f"{_c6_hours(env, res, ae, calibration):.0f} CPU-hours ({sweep})")
+                         f"{_cpu_hours(_c6_hours(env, res, ae, calibration))} ({sweep})")
             if "softae" in short:
                 text += f"; SoftAE's runs are {LOCOMOTION[env][0] if env in LOCOMOTION else sweep}'s"
             untested.append(text)
@@ -631,11 +637,11 @@ def c17() -> dict:
     policies = C17_METHODS * C17_TASKS * MIN_SEEDS
     return _row("C17", "SoftAE-MBPO on par with MBPO/MBPO-TS on (i), better on unseen tasks; Random lags", "Fig. S2",
                 why=f"SAC at Table S8's sizes (3 x 1024, 20 updates per real transition) was not run: one task "
-                    f"policy on {cost['transitions']:,} arm transitions costs about {hours:.0f} CPU-hours "
+                    f"policy on {cost['transitions']:,} arm transitions costs about {_cpu_hours(hours)} "
                     f"({MBPO_COST.relative_to(ROOT)}: one SAC update and one imagined-rollout round measured, "
                     f"{cost['cpu']['cpu']}, {cost['threads']} thread), and the claim needs at least {policies} policies "
                     f"({C17_METHODS} methods x (i) and an unseen task x {MIN_SEEDS} seeds): about "
-                    f"{policies * hours:,.0f} CPU-hours, twice that on the arm's 10,000 transitions; the reduced "
+                    f"{_cpu_hours(policies * hours, ',.0f')}, twice that on the arm's 10,000 transitions; the reduced "
                     "comparison is docs/results/mbpo.md")
 
 
