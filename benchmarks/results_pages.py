@@ -20,6 +20,8 @@ and ``KEY`` names what renders it:
   ``benchmarks/results/sopra_eval.md``, by ``benchmarks/sopra_eval.py``);
 - ``scorecard``: the judged claims of ``benchmarks/results/replication/scorecard.json`` (claim,
   paper, ours, verdict) and the ids still untested, for the README;
+- ``cost:ENV``: what the replication runs in ``benchmarks/results/replication/ENV/`` cost, per
+  method (hours per run, the evaluations' share, the machine);
 - ``speed:KIND[:TAG,...]``: the planning-speed targets of the records of a CPU kind, with each
   value's range over the runs ``TAG`` (``benchmarks/speed_targets.py``).
 """
@@ -93,11 +95,64 @@ def _scorecard(_: str) -> str:
     return "\n".join(out)
 
 
+#: the order of the methods in the cost tables, as in ``softae report``'s
+COST_ORDER = ("random", "mean-ae", "pets-ae", "hucrl", "softae")
+
+
+def _method_rank(method: str) -> int:
+    return COST_ORDER.index(method) if method in COST_ORDER else len(COST_ORDER)
+
+
+def _machine(record: dict) -> str:
+    m = record.get("machine") or {}
+    if "cpu" not in m:
+        return "not recorded"
+    amx = ", AMX" if "amx_bf16" in m.get("isa", ()) else ""
+    return f"{m['cpu']}{amx}, {m['threads']} thread{'s' if m['threads'] > 1 else ''}"
+
+
+def _cost(env: str) -> str:
+    """Per method and budget, the hours per run of every run whose records reach that budget (its
+    last): the mean and range over the runs, CPU time where every record carries it."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import scorecard
+
+    last: dict[tuple, dict] = {}
+    for path in (scorecard.RESULTS / env).glob("*-ep*.json"):
+        r = json.loads(path.read_text())
+        if "seconds" in r and r["budget"] > last.get((r["method"], r["seed"]), {}).get("budget", 0):
+            last[r["method"], r["seed"]] = r
+    groups: dict[tuple, list[dict]] = {}
+    for (method, seed), r in sorted(last.items(), key=lambda kv: (_method_rank(kv[0][0]), kv[0])):
+        groups.setdefault((method, r["budget"]), []).append(r)
+
+    def spread(costs, total, evaluate):
+        values = [c[total] for c in costs]
+        return (f"{sum(values) / len(values):.2f} ({min(values):.2f}-{max(values):.2f}), "
+                f"{sum(c[evaluate] for c in costs) / len(costs):.2f} evaluating")
+
+    if not groups:
+        return f"No records of {env} yet."
+    out = ["| method | runs (seeds) | episodes | CPU-hours per run, mean (range) | wall-clock hours per run, "
+           "mean (range) | machine |", "|---|---|---|---|---|---|"]
+    for (method, budget), runs in groups.items():
+        costs = [scorecard.run_cost(env, method, r["seed"], budget) for r in runs]
+        machines = [_machine(r) for r in runs]
+        machines = sorted(set(machines)) if len(set(machines)) == 1 else [
+            f"{m} ({machines.count(m)})" for m in sorted(set(machines))]
+        cells = [method, f"{len(runs)} ({', '.join(str(r['seed']) for r in runs)})", budget,
+                 spread(costs, "hours", "evaluate") if all(c["cpu"] for c in costs) else "not recorded",
+                 spread(costs, "wall", "wall_evaluate"), "; ".join(machines)]
+        out.append("| " + " | ".join(map(str, cells)) + " |")
+    return "\n".join(out)
+
+
 def _file(path: str) -> str:
     return (ROOT / path).read_text().strip()
 
 
-RENDERERS = {"sweep": _sweep, "replication": _replication, "scorecard": _scorecard, "file": _file, "speed": _speed}
+RENDERERS = {"sweep": _sweep, "replication": _replication, "scorecard": _scorecard, "file": _file, "speed": _speed,
+             "cost": _cost}
 
 
 def render(key: str) -> str:

@@ -203,12 +203,22 @@ def _cpu_hours(hours: float, fmt: str = ".0f") -> str:
 def _measured_hours(env: str, runs: list[dict], budget: int | None = None) -> float:
     """Mean CPU-hours of ``runs`` (their records up to ``budget``, by default the judged one)."""
     budget = budget or _budget(env)
-    hours = []
-    for r in runs:  # the run's exploration to the last budget and its evaluation at every budget
-        records = [json.loads(p.read_text()) for p in (RESULTS / env).glob(f"{r['method']}*-s{r['seed']}-ep*.json")]
-        evaluations = sum(_seconds(rec, "evaluate") for rec in records if rec["budget"] <= budget)
-        hours.append((_seconds(r, "explore") + evaluations) / 3600)
-    return float(np.mean(hours))
+    return float(np.mean([run_cost(env, r["method"], r["seed"], budget)["hours"] for r in runs]))
+
+
+def run_cost(env: str, method: str, seed: int, budget: int) -> dict:
+    """Hours one run spent up to ``budget``: its exploration to ``budget`` and its evaluations at
+    every budget up to it. ``hours`` and ``evaluate`` (the evaluations' share) by
+    :func:`_seconds` (CPU where a record carries it, else wall clock), ``wall`` and
+    ``wall_evaluate`` by the wall clock (a pause included), ``cpu``: every record carried CPU seconds."""
+    records = [json.loads(p.read_text()) for p in (RESULTS / env).glob(f"{method}*-s{seed}-ep*.json")]
+    records = [r for r in records if r["budget"] <= budget]
+    final = next(r for r in records if r["budget"] == budget)
+    evaluate = sum(_seconds(r, "evaluate") for r in records)
+    wall_evaluate = sum(r["seconds"]["evaluate"] for r in records)
+    return {"hours": (_seconds(final, "explore") + evaluate) / 3600, "evaluate": evaluate / 3600,
+            "wall": (final["seconds"]["explore"] + wall_evaluate) / 3600, "wall_evaluate": wall_evaluate / 3600,
+            "cpu": all(r.get("cpu_seconds", {}).get("explore") is not None for r in records)}
 
 
 def _seconds(record: dict, part: str) -> float:

@@ -451,3 +451,37 @@ def test_the_results_pages_are_what_the_committed_results_give():
         assert results_pages.render_page(text) == text, f"{page.name}: run python benchmarks/results_pages.py"
     with pytest.raises(ValueError, match="generated block 'plot:x': expected one of sweep:..."):
         results_pages.render_page("<!-- generated: plot:x -->\nold\n<!-- end generated -->")
+
+
+def test_the_cost_tables_add_each_runs_exploration_and_its_evaluations(tmp_path, monkeypatch):
+    """A ``cost:ENV`` block: per method, a run costs its exploration to its last budget plus its
+    evaluation at every budget; CPU hours only where every record of every run carries them."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import results_pages
+    import scorecard
+
+    monkeypatch.setattr(scorecard, "RESULTS", tmp_path)
+    (tmp_path / "Env-v0").mkdir()
+    xeon = {"cpu": "Xeon", "isa": ["avx2", "amx_bf16"], "threads": 1}
+
+    def record(method, seed, budget, explore, evaluate, cpu=None, machine=xeon):
+        r = {"method": method, "seed": seed, "budget": budget, "machine": machine,
+             "seconds": {"explore": explore, "evaluate": evaluate}}
+        if cpu:
+            r["cpu_seconds"] = {"explore": cpu[0], "evaluate": cpu[1]}
+        name = f"{method}{'-b2' if method == 'softae' else ''}-s{seed}-ep{budget}.json"
+        (tmp_path / "Env-v0" / name).write_text(json.dumps(r))
+
+    for seed, pause in ((0, 0), (1, 1800)):  # seed 1's exploration was paused for half an hour
+        record("softae", seed, 5, 1800, 360, cpu=(1800, 360))
+        record("softae", seed, 10, 3600 + pause, 720, cpu=(3600, 720))
+    record("random", 0, 10, 3600, 0, machine={})  # an old record: wall clock only, no machine
+    record("random", 1, 5, 900, 0)  # a run that has not reached 10 episodes
+    table = results_pages.render("cost:Env-v0").splitlines()
+    assert table[2:] == [
+        "| random | 1 (0) | 10 | not recorded | 1.00 (1.00-1.00), 0.00 evaluating | not recorded |",
+        "| random | 1 (1) | 5 | not recorded | 0.25 (0.25-0.25), 0.00 evaluating | Xeon, AMX, 1 thread |",
+        # explore to 10 (1 h) + evaluations at 5 and 10 (0.1 + 0.2 h); the pause only in the wall clock
+        "| softae | 2 (0, 1) | 10 | 1.30 (1.30-1.30), 0.30 evaluating | 1.55 (1.30-1.80), 0.30 evaluating | "
+        "Xeon, AMX, 1 thread |"]
+    assert results_pages.render("cost:Other-v0") == "No records of Other-v0 yet."
