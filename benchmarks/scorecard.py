@@ -211,8 +211,11 @@ def run_cost(env: str, method: str, seed: int, budget: int) -> dict:
     every budget up to it. ``hours`` and ``evaluate`` (the evaluations' share) by
     :func:`_seconds` (CPU where a record carries it, else wall clock), ``wall`` and
     ``wall_evaluate`` by the wall clock (a pause included), ``cpu``: every record carried CPU seconds."""
-    records = [json.loads(p.read_text()) for p in (RESULTS / env).glob(f"{method}*-s{seed}-ep*.json")]
-    records = [r for r in records if r["budget"] <= budget]
+    paths = sorted((RESULTS / env).glob(f"{method}*-s{seed}-ep*.json"))
+    runs = sorted({p.name.rsplit("-ep", 1)[0] for p in paths})
+    if len(runs) > 1:  # e.g. SoftAE at two betas: which run's cost is meant is not known here
+        raise ValueError(f"{env}: {method} seed {seed} names {len(runs)} runs ({', '.join(runs)}); expected one")
+    records = [r for r in (json.loads(p.read_text()) for p in paths) if r["budget"] <= budget]
     final = next(r for r in records if r["budget"] == budget)
     evaluate = sum(_seconds(r, "evaluate") for r in records)
     wall_evaluate = sum(r["seconds"]["evaluate"] for r in records)

@@ -485,3 +485,8 @@ def test_the_cost_tables_add_each_runs_exploration_and_its_evaluations(tmp_path,
         "| softae | 2 (0, 1) | 10 | 1.30 (1.30-1.30), 0.30 evaluating | 1.55 (1.30-1.80), 0.30 evaluating | "
         "Xeon, AMX, 1 thread |"]
     assert results_pages.render("cost:Other-v0") == "No records of Other-v0 yet."
+    record("softae", 0, 10, 3600, 720, cpu=(3600, 720))  # a second SoftAE run of seed 0, at another beta
+    (tmp_path / "Env-v0" / "softae-b2-s0-ep10.json").rename(tmp_path / "Env-v0" / "softae-b1-s0-ep10.json")
+    record("softae", 0, 10, 3600, 720, cpu=(3600, 720))
+    with pytest.raises(ValueError, match=r"Env-v0: softae seed 0 names 2 runs \(softae-b1-s0, softae-b2-s0\)"):
+        results_pages.render("cost:Env-v0")
