@@ -95,14 +95,6 @@ def _scorecard(_: str) -> str:
     return "\n".join(out)
 
 
-#: the order of the methods in the cost tables, as in ``softae report``'s
-COST_ORDER = ("random", "mean-ae", "pets-ae", "hucrl", "softae")
-
-
-def _method_rank(method: str) -> int:
-    return COST_ORDER.index(method) if method in COST_ORDER else len(COST_ORDER)
-
-
 def _machine(record: dict) -> str:
     m = record.get("machine") or {}
     if "cpu" not in m:
@@ -117,13 +109,16 @@ def _cost(env: str) -> str:
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import scorecard
 
+    from torchrl_softae.pipeline.labels import label_order
+
     last: dict[tuple, dict] = {}
     for path in (scorecard.RESULTS / env).glob("*-ep*.json"):
         r = json.loads(path.read_text())
         if "seconds" in r and r["budget"] > last.get((r["method"], r["seed"]), {}).get("budget", 0):
             last[r["method"], r["seed"]] = r
-    groups: dict[tuple, list[dict]] = {}
-    for (method, seed), r in sorted(last.items(), key=lambda kv: (_method_rank(kv[0][0]), kv[0])):
+    groups: dict[tuple, list[dict]] = {}  # in the order of softae report's tables
+    rank = {m: i for i, m in enumerate(label_order(m for m, _ in last))}
+    for (method, seed), r in sorted(last.items(), key=lambda kv: (rank[kv[0][0]], kv[0][1])):
         groups.setdefault((method, r["budget"]), []).append(r)
 
     def spread(costs, total, evaluate):
