@@ -184,14 +184,18 @@ def probe_hours(env: str, method: str) -> float:
     return (budget * length * plan_ms + fits * train_ms + eval_steps * probe["softae"]["plan_ms_per_step"]) / 3.6e6
 
 
-def probe_calibration(results: dict[str, dict]) -> tuple[float, int]:
-    """``(ratio, n)``: the median of measured over probe-estimated hours across the ``n``
+def probe_calibration(results: dict[str, dict], env: str | None = None) -> tuple[float, int, str]:
+    """``(ratio, n, scope)``: the median of measured over probe-estimated hours across the ``n``
     (env, method) pairs with finished runs in ``results`` (env -> method -> records). The probes ran
     beside two other runs on two cores, the sweeps' runs beside one, so a probe overstates a run's
-    hours by about this ratio; 1 before any run has finished."""
-    ratios = [_measured_hours(env, runs) / probe_hours(env, m) for env, res in results.items()
-              for m, runs in res.items() if m in METHODS]  # the probes price these (Random plans none)
-    return (float(np.median(ratios)), len(ratios)) if ratios else (1.0, 0)
+    hours by about this ratio. How much differs by env (the probes' contention did), so ``env``'s
+    own pairs set it where it has some (``scope`` "env"), else every env's ("all"); 1 before any
+    run has finished."""
+    ratios = {(e, m): _measured_hours(e, runs) / probe_hours(e, m) for e, res in results.items()
+              for m, runs in res.items() if m in METHODS}  # the probes price these (Random plans none)
+    own = [r for (e, _), r in ratios.items() if e == env]
+    chosen, scope = (own, "env") if own else (list(ratios.values()), "all")
+    return (float(np.median(chosen)), len(chosen), scope) if chosen else (1.0, 0, "all")
 
 
 def _cpu_hours(hours: float, fmt: str = ".0f") -> str:
@@ -233,22 +237,23 @@ def _seconds(record: dict, part: str) -> float:
 
 def _locomotion_missing(env: str, res: dict, methods, calibration) -> str | None:
     """The runs and CPU-hours ``env`` still needs, or ``None``. A method's run is priced by its
-    finished runs where it has some, else by the probe times ``calibration()``
+    finished runs where it has some, else by the probe times ``calibration(env)``
     (:func:`probe_calibration`, computed only when needed)."""
     short = {m: MIN_SEEDS - len(res.get(m, [])) for m in methods if len(res.get(m, [])) < MIN_SEEDS}
     if not short:
         return None
     runs = ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
     has_runs = [bool(res.get(m)) for m in short]
-    ratio, pairs = (1.0, 0) if all(has_runs) else calibration()
+    ratio, pairs, scope = (1.0, 0, "all") if all(has_runs) else calibration(env)
     hours = sum(n * (_measured_hours(env, res[m]) if res.get(m) else probe_hours(env, m) * ratio)
                 for m, n in short.items())
     if all(has_runs):
         measured = "measured by the finished runs"
     else:
         probes = f"one-episode probes, {LOCOMOTION_PROBE.relative_to(ROOT)}" + (
-            f", times {ratio:.2f}: the median of measured over probe hours of the {pairs} (env, method) pairs "
-            "with finished runs" if pairs else "")
+            f", times {ratio:.2f}: the median of measured over probe hours of "
+            + (f"this env's {pairs} methods" if scope == "env" else f"the {pairs} (env, method) pairs") + " with finished runs"
+            if pairs else "")
         measured = (f"estimated from {probes}" if not any(has_runs)
                     else f"measured by a method's finished runs where it has some, else estimated from {probes}")
     return (f"needs >= {MIN_SEEDS} seeds at {_budget(env)} episodes ({LOCOMOTION[env][0]}); missing {runs}: "
@@ -301,7 +306,7 @@ def _gap_text(g: dict, methods=METHODS) -> str:
 
 def locomotion_claims(results: dict[str, dict], calibration=None) -> list[dict]:
     """C8-C13 from the fish's and the leg's records (``results``: env -> method -> records;
-    ``calibration``: a cached :func:`probe_calibration` of them, made here if not given)."""
+    ``calibration``: env -> a cached :func:`probe_calibration` of them, made here if not given)."""
     claims = [  # id, claim, paper, env, task, kind, named methods
         ("C8", "fish (iii): SoftAE on par with H-UCRL trained on (iii)", "Fig. 2B", "SoftFish-v0", "forward", "par", ()),
         ("C9", "fish (iv): H-UCRL fails", "Fig. 2B", "SoftFish-v0", "backward", "fail", ("hucrl",)),
@@ -314,7 +319,7 @@ def locomotion_claims(results: dict[str, dict], calibration=None) -> list[dict]:
         ("C13", "leg (viii): H-UCRL and Random fail", "Fig. 2C", "MSKLeg-v0", "cw", "fail", ("hucrl", "random")),
     ]
     rows = []
-    calibration = calibration or functools.cache(lambda: probe_calibration(results))
+    calibration = calibration or functools.cache(lambda env: probe_calibration(results, env))
     for cid, claim, paper, env, task, kind, named in claims:
         res = results[env]
         page = "leg" if env.startswith("MSK") else "fish"
@@ -597,7 +602,7 @@ def _c6_hours(env: str, res: dict, short: dict, calibration) -> float:
     ratio of that method's hours to SoftAE's."""
     if env == "SoftArm-v1":
         return sum(n * ARM_RUN_HOURS[m] for m, n in short.items())
-    softae = _measured_hours(env, res["softae"]) if res.get("softae") else probe_hours(env, "softae") * calibration()[0]
+    softae = _measured_hours(env, res["softae"]) if res.get("softae") else probe_hours(env, "softae") * calibration(env)[0]
     return sum(n * (_measured_hours(env, res[m]) if res.get(m) else softae * ARM_RUN_HOURS[m] / ARM_RUN_HOURS["softae"])
                for m, n in short.items())
 
@@ -693,7 +698,7 @@ def scorecard() -> list[dict]:
     arm_res, sopra = arm_results(), sopra_results()
     arm = arm_claims(arm_res)
     locomotion = {env: locomotion_results(env) for env in LOCOMOTION}
-    calibration = functools.cache(lambda: probe_calibration(locomotion))
+    calibration = functools.cache(lambda env: probe_calibration(locomotion, env))
     rows = (arm + sopra_claims(sopra) + locomotion_claims(locomotion, calibration) + [c17()]
             + [c6(arm_res, locomotion, calibration), c7(arm_results(directory=ARM136), arm_res)])
     rows.append(c18(next(r for r in arm if r["id"] == "C1"), sopra, locomotion))

@@ -383,7 +383,7 @@ def test_c6_and_c7_follow_their_rules(tmp_path, monkeypatch):
     write("SoftFishTarget-v0", "softae", returns={"from-target": 300})
     arm = scorecard.arm_results()
     fish = lambda: {env: scorecard.locomotion_results(env) for env in ("SoftFish-v0", "SoftFishTarget-v0")}  # noqa: E731
-    calibration = lambda: (1.0, 0)  # noqa: E731 - every priced method here has a finished run to measure
+    calibration = lambda env: (1.0, 0, "all")  # noqa: E731 - every priced method here has a finished run to measure
     row = scorecard.c6(arm, fish(), calibration)
     # (ii) and (iv) hold; (vi) has no Mean-AE or PETS-AE yet: partly, priced from SoftAE's runs there
     assert row["verdict"] == "partly" and row["p"] < 0.05 and row["n"] == "(ii) 5 / 5 / 5; (iv) 5 / 5 / 5"
@@ -424,15 +424,21 @@ def test_the_locomotion_cost_estimate_counts_the_fits_a_run_makes():
     hours = {env: {m: scorecard.probe_hours(env, m) for m in ("random", "hucrl", "softae")} for env in scorecard.LOCOMOTION}
     assert all(h["random"] < min(h["hucrl"], h["softae"]) for h in hours.values())  # Random plans no step
     assert hours["SoftFish-v0"]["softae"] < hours["SoftFishTarget-v0"]["softae"] / 2  # H = 10 against 100
-    # the probes ran more contended than the sweeps: the median ratio of the finished (env, method)
-    # pairs rescales them, and brings each pair's estimate within a factor of 1.5 of its measured hours
+    # the probes ran more contended than the sweeps: the median ratio of an env's finished (method)
+    # pairs rescales its probes (every env's pairs where it has none), and brings each pair's
+    # estimate within a factor of 1.5 of its measured hours
     results = {env: scorecard.locomotion_results(env) for env in scorecard.LOCOMOTION}
-    ratio, pairs = scorecard.probe_calibration(results)
     finished = [(env, m) for env, res in results.items() for m in res if m in scorecard.METHODS]
-    assert pairs == len(finished) and (pairs == 0 or ratio != 1.0)
+    ratio, pairs, scope = scorecard.probe_calibration(results)
+    assert pairs == len(finished) and scope == "all" and (pairs == 0 or ratio != 1.0)
     for env, m in finished:
+        ratio, pairs, scope = scorecard.probe_calibration(results, env)
+        assert scope == "env" and pairs == sum(e == env for e, _ in finished), (env, pairs)
         measured = scorecard._measured_hours(env, results[env][m])
         assert 1 / 1.5 < hours[env][m] * ratio / measured < 1.5, (env, m)
+    # an env without finished runs is priced by every env's pairs
+    ratio_all = scorecard.probe_calibration(results)[0]
+    assert scorecard.probe_calibration({**results, "SoftSoPrA-v0": {}}, "SoftSoPrA-v0") == (ratio_all, len(finished), "all")
 
 
 def test_the_results_pages_are_what_the_committed_results_give():
