@@ -476,3 +476,23 @@ def test_a_replication_block_is_checked_before_any_run(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("softae: error: "), err
     assert "replication block: the budgets end at 2 episodes but the runs explore 3: set --episodes 2" in err[0]
     assert not (tmp_path / "runs").exists()
+
+
+def test_the_budget_plot_keeps_no_change_in_view_and_labels_the_lowest_error(tmp_path, monkeypatch):
+    """The held-out error's log axis reaches the decade below a line that ends just above one, and
+    still shows the s' = s line when every model's error lies far below it."""
+    import matplotlib.pyplot as plt
+
+    from torchrl_softae.pipeline import plots
+
+    leg = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "replication" / "MSKLeg-v0"
+    recs = [json.loads(p.read_text()) for p in sorted(leg.glob("random-s*-ep*.json"))]
+    for rec, err in zip(recs, np.geomspace(0.03, 0.0115, len(recs))):  # all below s' = s (0.1)
+        rec["accuracy"]["heldout_nmse"] = float(err)
+    figs = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path, rect=None: figs.append(fig) or path)
+    plots.plot_budgets(recs, tmp_path)
+    ax = next(a for a in figs[0].axes if "MSE" in a.get_title())
+    low, high = ax.get_ylim()
+    assert low <= 0.01 < 0.0115 and high >= recs[0]["accuracy"]["heldout_nmse_identity"]
+    plt.close("all")

@@ -425,14 +425,15 @@ def plot_budgets(records: list[dict], out_dir: str | Path) -> list[Path]:
             ax.set_xlabel("exploration episodes")
             if "MSE" in name:
                 ax.set_yscale("log")
-                low = ax.get_ylim()[0]
-                decade = 10 ** np.floor(np.log10(low))
-                if low < 2 * decade:  # show the decade's label: the lowest line would end unlabelled
-                    ax.set_ylim(bottom=decade / 1.1)
                 identity = next((r["accuracy"]["heldout_nmse_identity"] for r in recs
                                  if "heldout_nmse_identity" in r["accuracy"]), None)
                 if identity is not None:  # the same held-out set for every record of the env
                     ax.axhline(identity, color="0.4", ls="--", lw=1, label="s' = s (no change)")
+                # after every line: set_ylim ends autoscaling, and s' = s may lie above the data
+                low = ax.get_ylim()[0]
+                decade = 10 ** np.floor(np.log10(low))
+                if low < 2 * decade:  # show the decade's label: the lowest line would end unlabelled
+                    ax.set_ylim(bottom=decade / 1.1)
             elif name in reference_panels:  # the same evaluation episodes for every record
                 for (ref, per_task), ls in zip(sorted(refs.items()), (":", "-.")):
                     if per_task.get(reference_panels[name]):
