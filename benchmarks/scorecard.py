@@ -184,18 +184,28 @@ def probe_hours(env: str, method: str) -> float:
     return (budget * length * plan_ms + fits * train_ms + eval_steps * probe["softae"]["plan_ms_per_step"]) / 3.6e6
 
 
-def probe_calibration(results: dict[str, dict], env: str | None = None) -> tuple[float, int, str]:
-    """``(ratio, n, scope)``: the median of measured over probe-estimated hours across the ``n``
-    (env, method) pairs with finished runs in ``results`` (env -> method -> records). The probes ran
-    beside two other runs on two cores, the sweeps' runs beside one, so a probe overstates a run's
-    hours by about this ratio. How much differs by env (the probes' contention did), so ``env``'s
-    own pairs set it where it has some (``scope`` "env"), else every env's ("all"); 1 before any
-    run has finished."""
-    ratios = {(e, m): _measured_hours(e, runs) / probe_hours(e, m) for e, res in results.items()
-              for m, runs in res.items() if m in METHODS}  # the probes price these (Random plans none)
+def probe_ratios(results: dict[str, dict]) -> dict[tuple[str, str], float]:
+    """(env, method) -> measured over probe-estimated hours, for the pairs with finished runs in
+    ``results`` (env -> method -> records)."""
+    return {(env, m): _measured_hours(env, runs) / probe_hours(env, m) for env, res in results.items()
+            for m, runs in res.items() if m in METHODS}  # the probes price these (Random plans none)
+
+
+def probe_calibration(ratios: dict[tuple[str, str], float], env: str | None = None) -> tuple[float, int, str]:
+    """``(ratio, n, scope)``: the median of ``n`` of :func:`probe_ratios`. The probes ran beside two
+    other runs on two cores, the sweeps' runs beside one, so a probe overstates a run's hours by
+    about this ratio. How much differs by env (the probes' contention did), so ``env``'s own pairs
+    set it where it has some (``scope`` "env"), else every env's ("all"); 1 before any run has
+    finished."""
     own = [r for (e, _), r in ratios.items() if e == env]
     chosen, scope = (own, "env") if own else (list(ratios.values()), "all")
     return (float(np.median(chosen)), len(chosen), scope) if chosen else (1.0, 0, "all")
+
+
+def calibrator(results: dict[str, dict]):
+    """env -> :func:`probe_calibration`, the ratios read once, when first asked for."""
+    ratios = functools.cache(lambda: probe_ratios(results))
+    return functools.cache(lambda env: probe_calibration(ratios(), env))
 
 
 def _cpu_hours(hours: float, fmt: str = ".0f") -> str:
@@ -238,7 +248,7 @@ def _seconds(record: dict, part: str) -> float:
 def _locomotion_missing(env: str, res: dict, methods, calibration) -> str | None:
     """The runs and CPU-hours ``env`` still needs, or ``None``. A method's run is priced by its
     finished runs where it has some, else by the probe times ``calibration(env)``
-    (:func:`probe_calibration`, computed only when needed)."""
+    (a :func:`calibrator`: read only when needed)."""
     short = {m: MIN_SEEDS - len(res.get(m, [])) for m in methods if len(res.get(m, [])) < MIN_SEEDS}
     if not short:
         return None
@@ -306,7 +316,7 @@ def _gap_text(g: dict, methods=METHODS) -> str:
 
 def locomotion_claims(results: dict[str, dict], calibration=None) -> list[dict]:
     """C8-C13 from the fish's and the leg's records (``results``: env -> method -> records;
-    ``calibration``: env -> a cached :func:`probe_calibration` of them, made here if not given)."""
+    ``calibration``: their :func:`calibrator`, made here if not given)."""
     claims = [  # id, claim, paper, env, task, kind, named methods
         ("C8", "fish (iii): SoftAE on par with H-UCRL trained on (iii)", "Fig. 2B", "SoftFish-v0", "forward", "par", ()),
         ("C9", "fish (iv): H-UCRL fails", "Fig. 2B", "SoftFish-v0", "backward", "fail", ("hucrl",)),
@@ -319,7 +329,7 @@ def locomotion_claims(results: dict[str, dict], calibration=None) -> list[dict]:
         ("C13", "leg (viii): H-UCRL and Random fail", "Fig. 2C", "MSKLeg-v0", "cw", "fail", ("hucrl", "random")),
     ]
     rows = []
-    calibration = calibration or functools.cache(lambda env: probe_calibration(results, env))
+    calibration = calibration or calibrator(results)
     for cid, claim, paper, env, task, kind, named in claims:
         res = results[env]
         page = "leg" if env.startswith("MSK") else "fish"
@@ -698,7 +708,7 @@ def scorecard() -> list[dict]:
     arm_res, sopra = arm_results(), sopra_results()
     arm = arm_claims(arm_res)
     locomotion = {env: locomotion_results(env) for env in LOCOMOTION}
-    calibration = functools.cache(lambda env: probe_calibration(locomotion, env))
+    calibration = calibrator(locomotion)
     rows = (arm + sopra_claims(sopra) + locomotion_claims(locomotion, calibration) + [c17()]
             + [c6(arm_res, locomotion, calibration), c7(arm_results(directory=ARM136), arm_res)])
     rows.append(c18(next(r for r in arm if r["id"] == "C1"), sopra, locomotion))

@@ -429,16 +429,17 @@ def test_the_locomotion_cost_estimate_counts_the_fits_a_run_makes():
     # estimate within a factor of 1.5 of its measured hours
     results = {env: scorecard.locomotion_results(env) for env in scorecard.LOCOMOTION}
     finished = [(env, m) for env, res in results.items() for m in res if m in scorecard.METHODS]
-    ratio, pairs, scope = scorecard.probe_calibration(results)
+    ratios = scorecard.probe_ratios(results)
+    ratio, pairs, scope = scorecard.probe_calibration(ratios)
     assert pairs == len(finished) and scope == "all" and (pairs == 0 or ratio != 1.0)
     for env, m in finished:
-        ratio, pairs, scope = scorecard.probe_calibration(results, env)
+        ratio, pairs, scope = scorecard.probe_calibration(ratios, env)
         assert scope == "env" and pairs == sum(e == env for e, _ in finished), (env, pairs)
         measured = scorecard._measured_hours(env, results[env][m])
         assert 1 / 1.5 < hours[env][m] * ratio / measured < 1.5, (env, m)
     # an env without finished runs is priced by every env's pairs
-    ratio_all = scorecard.probe_calibration(results)[0]
-    assert scorecard.probe_calibration({**results, "SoftSoPrA-v0": {}}, "SoftSoPrA-v0") == (ratio_all, len(finished), "all")
+    ratio_all = scorecard.probe_calibration(ratios)[0]
+    assert scorecard.calibrator({**results, "SoftSoPrA-v0": {}})("SoftSoPrA-v0") == (ratio_all, len(finished), "all")
 
 
 def test_the_results_pages_are_what_the_committed_results_give():
