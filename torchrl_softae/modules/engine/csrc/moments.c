@@ -38,7 +38,9 @@
  * 1/L; squared deviations likewise), with separate multiplies and adds, so results agree with
  * them to rounding. AVX-512 (F, BW, VL), else AVX2 (eight dimensions per vector, no FMA, so the
  * same separate rounding), chosen at run time: elsewhere supported() is 0 and the ensemble runs the
- * torch ops. Built as the optional extension torchrl_softae.modules._moments
+ * torch ops. One exception, for the same bits as the torch step: s' = mu + sigma * eta is one
+ * fused multiply-add in both variants, as torch's vectorized addcmul computes it (the AVX-512
+ * variant's is the compiler's contraction; torch 2.13's AVX2 addcmul rounds once too). Built as the optional extension torchrl_softae.modules._moments
  * (pyproject.toml); OpenMP threads are torch's own (see silu.c).
  */
 #define PY_SSIZE_T_CLEAN
@@ -173,6 +175,12 @@ __attribute__((target("avx2,fma"))) static __m256 aleatoric_std_avx2(const momen
     return _mm256_mul_ps(_mm256_maskload_ps(a->std_scale + j, k), _mm256_sqrt_ps(_mm256_add_ps(one, q)));
 }
 
+/* SoftAE's s' = mu + sigma * eta in one rounding, as torch's addcmul gives it on AVX2 CPUs (a
+ * function of its own: the row's other multiplies and adds keep their separate roundings) */
+__attribute__((target("avx2,fma"))) static __m256 optimistic_next_avx2(__m256 mean, __m256 sd, __m256 eta) {
+    return _mm256_fmadd_ps(sd, eta, mean);
+}
+
 __attribute__((target("avx2"))) static void moments_row_avx2(const moments_args *a, int64_t n) {
     const int64_t L = a->L, d = a->d, src = n / a->share, row = src * a->sn;
     const __m256 inv_l = _mm256_set1_ps(1.0f / (float)L), inv_dof = _mm256_set1_ps(1.0f / (float)(L > 1 ? L - 1 : 1));
@@ -194,7 +202,7 @@ __attribute__((target("avx2"))) static void moments_row_avx2(const moments_args 
         }
         const __m256 sd = _mm256_sqrt_ps(_mm256_mul_ps(ss, inv_dof));
         __m256 next = mean;
-        if (a->eta != NULL) next = _mm256_add_ps(mean, _mm256_mul_ps(sd, _mm256_maskload_ps(a->eta + n * d + j, k)));
+        if (a->eta != NULL) next = optimistic_next_avx2(mean, sd, _mm256_maskload_ps(a->eta + n * d + j, k));
         if (a->member != NULL) {
             const int64_t l = a->member[n];
             if (a->picked != NULL) _mm256_maskstore_ps(a->picked + n * d + j, k, m[l]);
