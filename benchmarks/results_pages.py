@@ -95,14 +95,6 @@ def _scorecard(_: str) -> str:
     return "\n".join(out)
 
 
-def _machine(record: dict) -> str:
-    m = record.get("machine") or {}
-    if "cpu" not in m:
-        return "not recorded"
-    amx = ", AMX" if "amx_bf16" in m.get("isa", ()) else ""
-    return f"{m['cpu']}{amx}, {m['threads']} thread{'s' if m['threads'] > 1 else ''}"
-
-
 def _cost(env: str) -> str:
     """Per method and budget, the hours per run of every run whose records reach that budget (its
     last): the mean and range over the runs, CPU time where every record carries it."""
@@ -132,7 +124,7 @@ def _cost(env: str) -> str:
            "mean (range) | machine |", "|---|---|---|---|---|---|"]
     for (method, budget), runs in groups.items():
         costs = [scorecard.run_cost(env, method, r["seed"], budget) for r in runs]
-        machines = [_machine(r) for r in runs]
+        machines = [scorecard.machine_label(r) for r in runs]
         machines = sorted(set(machines)) if len(set(machines)) == 1 else [
             f"{m} ({machines.count(m)})" for m in sorted(set(machines))]
         cells = [method, f"{len(runs)} ({', '.join(str(r['seed']) for r in runs)})", budget,

@@ -245,6 +245,21 @@ def _seconds(record: dict, part: str) -> float:
     return record["seconds"][part] if cpu is None else cpu
 
 
+def machine_label(record: dict) -> str:
+    """Where a record (or the probe) ran: "CPU[, AMX], N thread(s)". Hours differ by machine: the
+    planning runs in bf16 only where the CPU has it natively."""
+    m = record.get("machine") or {}
+    if "cpu" not in m:
+        return "not recorded"
+    amx = ", AMX" if "amx_bf16" in m.get("isa", ()) else ""
+    return f"{m['cpu']}{amx}, {m['threads']} thread{'s' if m['threads'] > 1 else ''}"
+
+
+def _machines(records) -> str:
+    """The machines ``records`` ran on ("" when none says)."""
+    return "; ".join(sorted({machine_label(r) for r in records} - {"not recorded"}))
+
+
 def _locomotion_missing(env: str, res: dict, methods, calibration) -> str | None:
     """The runs and CPU-hours ``env`` still needs, or ``None``. A method's run is priced by its
     finished runs where it has some, else by the probe times ``calibration(env)``
@@ -257,15 +272,18 @@ def _locomotion_missing(env: str, res: dict, methods, calibration) -> str | None
     ratio, pairs, scope = (1.0, 0, "all") if all(has_runs) else calibration(env)
     hours = sum(n * (_measured_hours(env, res[m]) if res.get(m) else probe_hours(env, m) * ratio)
                 for m, n in short.items())
+    finished = _machines(r for m in short for r in res.get(m, []))
     if all(has_runs):
-        measured = "measured by the finished runs"
+        measured = "measured by the finished runs" + (f", on {finished}" if finished else "")
     else:
-        probes = f"one-episode probes, {LOCOMOTION_PROBE.relative_to(ROOT)}" + (
+        probe_machine = machine_label(json.loads(LOCOMOTION_PROBE.read_text()))
+        probes = f"one-episode probes on {probe_machine}, {LOCOMOTION_PROBE.relative_to(ROOT)}" + (
             f", times {ratio:.2f}: the median of measured over probe hours of "
             + (f"this env's {pairs} methods" if scope == "env" else f"the {pairs} (env, method) pairs") + " with finished runs"
             if pairs else "")
         measured = (f"estimated from {probes}" if not any(has_runs)
-                    else f"measured by a method's finished runs where it has some, else estimated from {probes}")
+                    else "measured by a method's finished runs where it has some" + (f" (on {finished})" if finished else "")
+                    + f", else estimated from {probes}")
     return (f"needs >= {MIN_SEEDS} seeds at {_budget(env)} episodes ({LOCOMOTION[env][0]}); missing {runs}: "
             f"about {_cpu_hours(hours)} in all, one core per run ({measured})")
 
@@ -574,8 +592,10 @@ def c6(arm: dict, locomotion: dict[str, dict], calibration) -> dict:
             ae = {m: n for m, n in short.items() if m in AE_METHODS}
             text = f"{label} {env}: missing " + ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
             if ae:
+                priced = _machines(r for m in ("softae", *ae) for r in res.get(m, []))
                 text += (f"; {' and '.join(NAMES[m] for m in ae)} about "
-                         f"{_cpu_hours(_c6_hours(env, res, ae, calibration))} ({sweep})")
+                         f"{_cpu_hours(_c6_hours(env, res, ae, calibration))}"
+                         + (f" as measured on {priced}" if priced else "") + f" ({sweep})")
             if "softae" in short:
                 text += f"; SoftAE's runs are {LOCOMOTION[env][0] if env in LOCOMOTION else sweep}'s"
             untested.append(text)

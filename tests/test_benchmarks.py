@@ -327,7 +327,16 @@ def test_the_fish_and_leg_claims_follow_their_rules(tmp_path, monkeypatch):
     rows = {r["id"]: r for r in scorecard.locomotion_claims(results)}
     assert rows["C12"]["verdict"] == rows["C13"]["verdict"] == "untested"
     assert "1 of random (has 4): about 1 CPU-hour in all" in rows["C12"]["why"]
-    assert "measured by the finished runs" in rows["C12"]["why"]
+    assert "measured by the finished runs" in rows["C12"]["why"] and ", on " not in rows["C12"]["why"]
+    # the price names the machines it was measured on: hours differ by CPU
+    for seed, cpu in ((0, "Xeon"), (1, "EPYC")):
+        path = tmp_path / "MSKLeg-v0" / f"random-s{seed}-ep50.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()),
+                                    "machine": {"cpu": cpu, "isa": ["avx2", "amx_bf16"][: 2 if cpu == "Xeon" else 1],
+                                                "threads": 1}}))
+    results["MSKLeg-v0"] = scorecard.locomotion_results("MSKLeg-v0")
+    rows = {r["id"]: r for r in scorecard.locomotion_claims(results)}
+    assert "measured by the finished runs, on EPYC, 1 thread; Xeon, AMX, 1 thread)" in rows["C12"]["why"]
     # records with CPU seconds are priced by them, not by the wall clock (which counts pauses)
     for seed in range(4):
         path = tmp_path / "MSKLeg-v0" / f"random-s{seed}-ep50.json"
