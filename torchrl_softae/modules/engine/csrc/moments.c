@@ -39,8 +39,8 @@
  * them to rounding. AVX-512 (F, BW, VL), else AVX2 (eight dimensions per vector, no FMA, so the
  * same separate rounding), chosen at run time: elsewhere supported() is 0 and the ensemble runs the
  * torch ops. One exception, for the same bits as the torch step: s' = mu + sigma * eta is one
- * fused multiply-add in both variants, as torch's vectorized addcmul computes it (the AVX-512
- * variant's is the compiler's contraction; torch 2.13's AVX2 addcmul rounds once too). Built as the optional extension torchrl_softae.modules._moments
+ * fused multiply-add in both variants, as torch 2.13's vectorized addcmul computes it on AVX2 and
+ * AVX-512 CPUs (written out, not left to the compiler's contraction). Built as the optional extension torchrl_softae.modules._moments
  * (pyproject.toml); OpenMP threads are torch's own (see silu.c).
  */
 #define PY_SSIZE_T_CLEAN
@@ -112,7 +112,7 @@ __attribute__((target("avx512f,avx512bw,avx512vl"))) static void moments_row_avx
         }
         const __m512 sd = _mm512_sqrt_ps(_mm512_mul_ps(ss, inv_dof));
         __m512 next = mean;
-        if (a->eta != NULL) next = _mm512_add_ps(mean, _mm512_mul_ps(sd, _mm512_maskz_loadu_ps(k, a->eta + n * d + j)));
+        if (a->eta != NULL) next = _mm512_fmadd_ps(sd, _mm512_maskz_loadu_ps(k, a->eta + n * d + j), mean);
         if (a->member != NULL) {
             const int64_t l = a->member[n];
             if (a->picked != NULL) _mm512_mask_storeu_ps(a->picked + n * d + j, k, m[l]);
