@@ -38,10 +38,11 @@
  * 1/L; squared deviations likewise), with separate multiplies and adds, so results agree with
  * them to rounding. AVX-512 (F, BW, VL), else AVX2 (eight dimensions per vector, no FMA, so the
  * same separate rounding), chosen at run time: elsewhere supported() is 0 and the ensemble runs the
- * torch ops. One exception, for the same bits as the torch step: s' = mu + sigma * eta is one
- * fused multiply-add in both variants, as torch 2.13's vectorized addcmul computes it on AVX2 and
- * AVX-512 CPUs (written out, not left to the compiler's contraction). Built as the optional extension torchrl_softae.modules._moments
- * (pyproject.toml); OpenMP threads are torch's own (see silu.c).
+ * torch ops (the compiler may still contract a multiply and an add of the AVX-512 variant). One
+ * exception, for the same bits as the torch step: s' = mu + sigma * eta is one fused multiply-add
+ * in both variants, as torch 2.13's vectorized addcmul computes it on AVX2 and AVX-512 CPUs
+ * (written out, not left to the compiler). Built as the optional extension
+ * torchrl_softae.modules._moments (pyproject.toml); OpenMP threads are torch's own (see silu.c).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
