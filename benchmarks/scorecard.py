@@ -167,6 +167,11 @@ def grad_steps(episodes: int, length: int, cap: int, epochs: int = 50, batch: in
     return sum(min(epochs * -(-round((1 - val) * length * e) // batch), cap) for e in range(1, episodes + 1))
 
 
+@functools.cache
+def _probe() -> dict:
+    return json.loads(LOCOMOTION_PROBE.read_text())
+
+
 def probe_hours(env: str, method: str) -> float:
     """One-core hours of one run of the env's sweep, from the probe (:data:`LOCOMOTION_PROBE`):
     planning every real step (Random plans none), the fits after every episode (the run's training
@@ -175,7 +180,7 @@ def probe_hours(env: str, method: str) -> float:
     from torchrl_softae.pipeline.config import make_config
 
     sweep, budget, cfg = _sweep(env), _budget(env), make_config(env)  # the sweeps set no schedule
-    probe = json.loads(LOCOMOTION_PROBE.read_text())["runs"][env]
+    probe = _probe()["runs"][env]
     plan_ms = probe[method]["plan_ms_per_step"] if method in probe else 0.0
     train_ms = probe.get(method, probe["softae"])["train_ms_per_grad_step"]
     t, length, ev = cfg.train, cfg.episode_length, sweep["evaluate"]
@@ -245,19 +250,22 @@ def _seconds(record: dict, part: str) -> float:
     return record["seconds"][part] if cpu is None else cpu
 
 
+NOT_RECORDED = "not recorded"
+
+
 def machine_label(record: dict) -> str:
     """Where a record (or the probe) ran: "CPU[, AMX], N thread(s)". Hours differ by machine: the
     planning runs in bf16 only where the CPU has it natively."""
     m = record.get("machine") or {}
     if "cpu" not in m:
-        return "not recorded"
+        return NOT_RECORDED
     amx = ", AMX" if "amx_bf16" in m.get("isa", ()) else ""
     return f"{m['cpu']}{amx}, {m['threads']} thread{'s' if m['threads'] > 1 else ''}"
 
 
 def _machines(records) -> str:
     """The machines ``records`` ran on ("" when none says)."""
-    return "; ".join(sorted({machine_label(r) for r in records} - {"not recorded"}))
+    return "; ".join(sorted({machine_label(r) for r in records} - {NOT_RECORDED}))
 
 
 def _locomotion_missing(env: str, res: dict, methods, calibration) -> str | None:
@@ -276,7 +284,7 @@ def _locomotion_missing(env: str, res: dict, methods, calibration) -> str | None
     if all(has_runs):
         measured = "measured by the finished runs" + (f", on {finished}" if finished else "")
     else:
-        probe_machine = machine_label(json.loads(LOCOMOTION_PROBE.read_text()))
+        probe_machine = machine_label(_probe())
         probes = f"one-episode probes on {probe_machine}, {LOCOMOTION_PROBE.relative_to(ROOT)}" + (
             f", times {ratio:.2f}: the median of measured over probe hours of "
             + (f"this env's {pairs} methods" if scope == "env" else f"the {pairs} (env, method) pairs") + " with finished runs"
@@ -592,10 +600,9 @@ def c6(arm: dict, locomotion: dict[str, dict], calibration) -> dict:
             ae = {m: n for m, n in short.items() if m in AE_METHODS}
             text = f"{label} {env}: missing " + ", ".join(f"{n} of {m} (has {len(res.get(m, []))})" for m, n in short.items())
             if ae:
-                priced = _machines(r for m in ("softae", *ae) for r in res.get(m, []))
-                text += (f"; {' and '.join(NAMES[m] for m in ae)} about "
-                         f"{_cpu_hours(_c6_hours(env, res, ae, calibration))}"
-                         + (f" as measured on {priced}" if priced else "") + f" ({sweep})")
+                hours, priced = _c6_hours(env, res, ae, calibration)
+                text += (f"; {' and '.join(NAMES[m] for m in ae)} about {_cpu_hours(hours)}"
+                         + (f" as measured on {_machines(priced)}" if _machines(priced) else "") + f" ({sweep})")
             if "softae" in short:
                 text += f"; SoftAE's runs are {LOCOMOTION[env][0] if env in LOCOMOTION else sweep}'s"
             untested.append(text)
@@ -626,15 +633,17 @@ def c6(arm: dict, locomotion: dict[str, dict], calibration) -> dict:
                 f"one-sided Welch, alpha = {ALPHA}, SoftAE better than each on each tested task", max(ps), verdict, why)
 
 
-def _c6_hours(env: str, res: dict, short: dict, calibration) -> float:
-    """CPU-hours of C6's missing runs on ``env``: the arm's measured hours per method; on the fish a
-    method's finished runs, else SoftAE's (finished runs, else the calibrated probe) times the arm's
-    ratio of that method's hours to SoftAE's."""
+def _c6_hours(env: str, res: dict, short: dict, calibration) -> tuple[float, list[dict]]:
+    """CPU-hours of C6's missing runs on ``env`` and the records that priced them: the arm's
+    measured hours per method (no records); on the fish a method's finished runs, else SoftAE's
+    (finished runs, else the calibrated probe) times the arm's ratio of that method's hours to SoftAE's."""
     if env == "SoftArm-v1":
-        return sum(n * ARM_RUN_HOURS[m] for m, n in short.items())
+        return sum(n * ARM_RUN_HOURS[m] for m, n in short.items()), []
     softae = _measured_hours(env, res["softae"]) if res.get("softae") else probe_hours(env, "softae") * calibration(env)[0]
-    return sum(n * (_measured_hours(env, res[m]) if res.get(m) else softae * ARM_RUN_HOURS[m] / ARM_RUN_HOURS["softae"])
-               for m, n in short.items())
+    hours = sum(n * (_measured_hours(env, res[m]) if res.get(m) else softae * ARM_RUN_HOURS[m] / ARM_RUN_HOURS["softae"])
+                for m, n in short.items())
+    by_softae = any(not res.get(m) for m in short)
+    return hours, [r for m in (*short, *(("softae",) if by_softae else ())) for r in res.get(m, [])]
 
 
 def c7(res136: dict, res58: dict) -> dict:
