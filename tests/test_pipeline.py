@@ -94,6 +94,43 @@ def test_evaluation_reproduces_from_saved_run(tmp_path):
     assert "upright_fraction_last_half" in saved["metrics"][0]
 
 
+POINT = ["--env", "outside_envs:OutsidePoint-v0", "--preset", "quick", "--set", "planner.horizon=2",
+         "--set", "planner.num_candidates=8", "--set", "planner.top_k=2", "--set", "train.epochs=1"]
+
+
+def test_a_resumed_evaluation_keeps_the_tasks_evaluated_for_the_same_model_code_and_machine(tmp_path, capsys):
+    """``--resume``: a task saved for this model, these settings, this code and this machine is read
+    back (a sentinel in its file proves it), the others are planned as an uninterrupted evaluation
+    plans them; another model, other code or a file cut short by a kill is planned again."""
+    assert main(["explore", *POINT, "--episodes", "2", "--set", "heldout_size=40", "--wandb", "disabled", "--quiet",
+                 "--run-dir", str(tmp_path)]) == 0
+    tasks = ["outside_envs:point_tasks"]  # reach-left, reach-up: 10 steps each
+    straight = evaluate_run(tmp_path, tasks=tasks, episodes=1, progress=False)
+    done = tmp_path / "eval" / "reach-left.json"
+    saved = json.loads(done.read_text())
+    assert saved["code"]["version"] and saved["machine"]["cpu"] and len(saved["model_sha256"]) == 64
+    assert saved["cpu_seconds"] > 0 and saved["seconds"] > 0
+    sentinel = {**saved, "returns": [123.0], "mean_return": 123.0}
+    done.write_text(json.dumps(sentinel))  # as a process killed in the next task left it
+    (tmp_path / "eval" / "reach-up.json").unlink()
+    events = []
+    resumed = evaluate_run(tmp_path, tasks=tasks, episodes=1, progress=False, resume=True,
+                           on_task=lambda name, res, kept: events.append((name, kept)))
+    assert events == [("reach-left", True), ("reach-up", False)]
+    assert resumed["tasks"]["reach-left"]["returns"] == [123.0]
+    assert resumed["tasks"]["reach-up"]["returns"] == straight["tasks"]["reach-up"]["returns"]
+    capsys.readouterr()
+    assert main(["evaluate", "--run-dir", str(tmp_path), "--task", tasks[0], "--episodes", "1", "--resume"]) == 0
+    assert "reach-left: mean return 123 over 1 episodes" in capsys.readouterr().out
+    assert main(["evaluate", "--run-dir", str(tmp_path), "--task", tasks[0], "--episodes", "1"]) == 0  # no --resume
+    assert json.loads(done.read_text())["returns"] == straight["tasks"]["reach-left"]["returns"]
+    for tampered in ({**sentinel, "model_sha256": "0" * 64}, {**sentinel, "code": {**saved["code"], "commit": "0" * 40}},
+                     {**sentinel, "seed": 1}, json.dumps(sentinel)[:40]):
+        done.write_text(tampered if isinstance(tampered, str) else json.dumps(tampered))
+        again = evaluate_run(tmp_path, tasks=tasks, episodes=1, progress=False, resume=True)
+        assert again["tasks"]["reach-left"]["returns"] == straight["tasks"]["reach-left"]["returns"], tampered
+
+
 def test_swingup_task_reward_matches_gymnasium():
     """The task reward computed from observations equals Pendulum-v1's own reward."""
     from torchrl.envs import GymEnv

@@ -450,7 +450,27 @@ def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(
     # the budget-3 record continues the budget-1 run: same first episode
     late = json.loads((results / "softae-b2-s1-ep3.json").read_text())
     assert late["history"][0] == rec["history"][0] and len(late["history"]) == 3
+    # killed in the budget-3 evaluation after swingup: the rerun keeps swingup (a sentinel proves it),
+    # evaluates spin, counts both tasks' seconds and says so
+    (results / "softae-b2-s1-ep3.json").unlink()
+    evals = root / "Pendulum-v1" / "softae-b2-s1" / "eval"
+    (evals / "spin@horizon=2.json").unlink()
+    swingup = json.loads((evals / "swingup@horizon=2.json").read_text())
+    assert swingup["episodes_explored"] == 3
+    (evals / "swingup@horizon=2.json").write_text(json.dumps({**swingup, "returns": [7.0], "mean_return": 7.0,
+                                                               "cpu_seconds": 1000.0}))
     capsys.readouterr()
+    assert main(["sweep", str(f), "--root", str(root), "--jobs", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "3 finished, 1 to run" in out
+    assert "trial Pendulum-v1/softae-b2-s1: zero-shot swingup with the model of episode 3: mean return 7 " \
+           "(kept from an earlier attempt)" in out, out
+    assert "trial Pendulum-v1/softae-b2-s1: zero-shot spin with the model of episode 3: mean return" in out
+    again = json.loads((results / "softae-b2-s1-ep3.json").read_text())
+    assert again["tasks"]["swingup"]["returns"] == [7.0] and again["tasks"]["spin"] == late["tasks"]["spin"] | {
+        k: again["tasks"]["spin"][k] for k in ("seconds", "cpu_seconds")}
+    assert again["cpu_seconds"]["evaluate"] > 1000.0
+    (results / "softae-b2-s1-ep3.json").write_text(json.dumps(late))  # the real record again, for the report
     assert main(["sweep", str(f), "--root", str(root)]) == 0
     assert "4 finished, 0 to run" in capsys.readouterr().out
     assert main(["report", str(results.parent)]) == 0

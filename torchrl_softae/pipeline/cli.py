@@ -81,7 +81,7 @@ def cmd_evaluate(args) -> int:
     progress, _ = _progress_style(args)
     res = evaluate_run(args.run_dir, tasks=args.task or None, episodes=args.episodes, seed=args.seed,
                        propagation=args.propagation, progress=progress, planner_overrides=args.overrides,
-                       references=args.references)
+                       references=args.references, resume=args.resume)
     note = "" if res["heldout_set"] == ENV_HELDOUT else f" [{res['heldout_set']}]"
     print(f"{args.run_dir}: held-out normalized MSE {res['heldout_nmse']:.4g}{note}")
     for name, r in res["tasks"].items():
@@ -244,6 +244,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="plan the task differently from exploration, e.g. --set planner.horizon=30 (repeatable)")
     p.add_argument("--references", action="store_true",
                    help="also the returns of model-free references (random actions, no control) on the same episodes")
+    p.add_argument("--resume", action="store_true",
+                   help="keep each task already evaluated for this model with these settings, by the same code "
+                        "on the same machine (a killed evaluation goes on from the task it was in)")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_evaluate)

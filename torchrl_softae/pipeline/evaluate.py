@@ -1,7 +1,9 @@
 """Zero-shot evaluation: the explored model + iCEM solve a task they never saw, on the real env."""
 from __future__ import annotations
 
+import hashlib
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -13,11 +15,12 @@ from torchrl_softae.pipeline.builders import build_planner_policy, build_world_m
 from torchrl_softae.pipeline.catalog import ENV_HELDOUT, get_env_entry, get_task, get_tasks, heldout_note, run_entry
 from torchrl_softae.pipeline.config import ConfigError, ExploreConfig, apply_overrides
 from torchrl_softae.pipeline.data import ModelAccuracy, episode_seed, make_real_env, seed_everything
+from torchrl_softae.pipeline.provenance import code_identity, machine
 from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir
 from torchrl_softae.tasks.base import Task, TaskReward
 
 __all__ = ["load_run", "zero_shot", "task_policy", "reference_returns", "evaluate_run", "eval_file_name",
-           "write_references", "REFERENCE_POLICIES", "REFERENCES_FILE"]
+           "evaluation_identity", "write_references", "REFERENCE_POLICIES", "REFERENCES_FILE"]
 
 
 def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, dict]:
@@ -211,7 +214,8 @@ def reference_returns(env: str, task: str | Task, policy: str = "random", episod
 def evaluate_run(
     run_dir: str | Path, tasks: list[str] | None = None, episodes: int = 3, seed: int = 0,
     propagation: str = "mean", progress: bool = True, planner_overrides: list[str] | None = None,
-    references: bool = False, task_episodes: dict[str, int] | None = None,
+    references: bool = False, task_episodes: dict[str, int] | None = None, resume: bool = False,
+    on_task=None,
 ) -> dict:
     """Zero-shot returns on ``tasks`` (names of the env's tasks or ``module:attr`` references;
     default: all of the env's) and held-out normalized MSE.
@@ -223,6 +227,12 @@ def evaluate_run(
     overrides) and ``RUN/eval/model_accuracy.json``. ``references``: also the returns of the
     model-free references (:data:`REFERENCE_POLICIES`) on the same episodes, to
     ``RUN/eval/references.json`` (``softae report`` adds them as rows).
+
+    ``resume``: a task whose saved result was computed for this checkpoint's model with these
+    settings, by the same code on the same machine (:func:`evaluation_identity`), is read
+    back instead of planned again, so a killed evaluation loses only the task it was in.
+    ``on_task(name, result, kept)`` is called after each task (``kept``: read back; its
+    ``seconds`` and ``cpu_seconds`` are those of the process that planned it).
     """
     cfg, model, state = load_run(run_dir)
     if planner_overrides:
@@ -243,18 +253,54 @@ def evaluate_run(
     out.update(accuracy.baselines)
     run.write_json(run.eval_dir / "model_accuracy.json", dict(out))
     out["tasks"] = {}
+    identity = evaluation_identity(state)
     for name, task in chosen.items():
         n = (task_episodes or {}).get(name, episodes)
-        res = zero_shot(cfg, model, task, episodes=n, seed=seed, propagation=propagation, progress=progress)
-        res["mean_return"] = float(np.mean(res["returns"]))
-        # which model was evaluated: a resumed, longer exploration makes this result stale
-        res.update(propagation=propagation, beta=cfg.beta, seed=seed, episodes=n, planner=dict(vars(cfg.planner)),
-                   episodes_explored=out["episodes_explored"], success_metric=task.success_metric)
-        run.write_json(run.eval_dir / eval_file_name(name, planner_overrides), res)
+        path = run.eval_dir / eval_file_name(name, planner_overrides)
+        # which model was evaluated and how: a resumed, longer exploration makes this result stale
+        settings = {"propagation": propagation, "beta": cfg.beta, "seed": seed, "episodes": n,
+                    "planner": dict(vars(cfg.planner)), "episodes_explored": out["episodes_explored"],
+                    "success_metric": task.success_metric, **identity}
+        res = _saved_result(path, settings) if resume else None
+        kept = res is not None
+        if not kept:
+            t0, cpu0 = time.perf_counter(), time.process_time()
+            res = zero_shot(cfg, model, task, episodes=n, seed=seed, propagation=propagation, progress=progress)
+            res["mean_return"] = float(np.mean(res["returns"]))
+            res.update(settings, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - cpu0)
+            run.write_json(path, res)
         out["tasks"][name] = res
+        if on_task is not None:
+            on_task(name, res, kept)
     if references:
         out["references"] = write_references(run, cfg.env, chosen, episodes, seed, task_episodes)
     return out
+
+
+def evaluation_identity(state: dict) -> dict:
+    """What a saved task result must share with a new evaluation to be kept by ``resume``, beside
+    its settings: the model (a digest of the checkpoint's weights), the code
+    (:func:`~torchrl_softae.pipeline.provenance.code_identity`) and the machine (CPU, instruction
+    sets, torch, threads, kernels), since each of them changes the planner's arithmetic."""
+    digest = hashlib.sha256()
+    for key in sorted(state["model"]):
+        tensor = state["model"][key].detach().cpu().contiguous()
+        digest.update(key.encode())
+        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return {"model_sha256": digest.hexdigest(), "code": code_identity(), "machine": machine()}
+
+
+def _saved_result(path: Path, settings: dict) -> dict | None:
+    """The result saved at ``path`` if it was computed with ``settings`` (as JSON reads them back),
+    else ``None``."""
+    if not path.exists():
+        return None
+    try:
+        saved = json.loads(path.read_text())
+    except json.JSONDecodeError:  # a file cut short by a kill: evaluate again
+        return None
+    expected = json.loads(json.dumps(settings, default=float))
+    return saved if all(saved.get(k) == v for k, v in expected.items()) and "returns" in saved else None
 
 
 def write_references(run: RunDir, env: str, tasks: dict[str, Task], episodes: int, seed: int,

@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import subprocess
 import time
 from pathlib import Path
 
 from torchrl_softae.pipeline.config import ConfigError
 from torchrl_softae.pipeline.data import COVERAGE_BINS
+from torchrl_softae.pipeline.provenance import code_version, machine
 from torchrl_softae.pipeline.records import REPLICATION_KIND
 
 __all__ = ["REPLICATION_KIND", "REPLICATION_KEYS", "HISTOGRAM_BINS", "check_block", "record_path", "missing_budgets",
@@ -77,38 +77,6 @@ def missing_budgets(block: dict, run_dir: Path) -> list[int]:
     return [b for b in block["budgets"] if not record_path(block, run_dir, b).exists()]
 
 
-def code_version() -> dict:
-    """The commit of the package's source tree and whether it had uncommitted changes (``None``
-    outside a git checkout): a record says which code computed it."""
-    where = Path(__file__).resolve().parent
-
-    def git(*args):
-        try:
-            return subprocess.run(["git", *args], cwd=where, capture_output=True, text=True, timeout=10).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return ""
-
-    commit = git("rev-parse", "HEAD") or None
-    return {"commit": commit, "dirty": None if commit is None else bool(git("status", "--porcelain",
-                                                                         "--untracked-files=no"))}
-
-
-def machine() -> dict:
-    """The CPU (name and the instruction sets that change the arithmetic or its speed), torch and
-    its threads, and which compiled kernels this process loaded."""
-    import torch
-
-    from torchrl_softae.modules.engine import amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel
-    from torchrl_softae.modules.engine.precision import cpu_info, cpu_name, flags_of
-
-    info = cpu_info()
-    flags = flags_of(info)
-    return {"cpu": cpu_name(info), "isa": [f for f in ("avx2", "avx512f", "avx512_bf16", "amx_bf16") if f in flags],
-            "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "kernels": {m.__name__.rsplit(".", 1)[1]: m.available() for m in
-                        (amx_network, fma_network, moments_kernel, normal_kernel, silu_kernel)}}
-
-
 def coverage_histogram(cfg, run_dir: Path) -> dict:
     """Transitions per cell of the env's coverage grid (its projection, e.g. the arm's tip x-z) of
     every transition ``run_dir`` holds, at :data:`HISTOGRAM_BINS` cells per axis."""
@@ -144,10 +112,12 @@ def check_histogram(histogram: dict, history: list[dict]) -> None:
                          f"{want['coverage']:.4f}: not the same data")
 
 
-def run_budgets(trial, cfg, on_episode=None) -> list[dict]:
+def run_budgets(trial, cfg, on_episode=None, on_task=None) -> list[dict]:
     """Explore ``trial``'s run to each budget that has no record yet, evaluate it there and write
     its record; returns the run's history (the last budget's). A budget the run already went past cannot be
-    evaluated any more (its model is gone): one clear error."""
+    evaluated any more (its model is gone): one clear error. A task a killed process evaluated for
+    the budget's model is kept (:func:`~torchrl_softae.pipeline.evaluate.evaluate_run`'s ``resume``),
+    and its seconds count in the record's. ``on_task``: as ``evaluate_run``'s."""
     from torchrl_softae.pipeline.evaluate import evaluate_run
     from torchrl_softae.pipeline.explore import explore
     from torchrl_softae.pipeline.runs import RunDir, atomic_write_text
@@ -163,9 +133,19 @@ def run_budgets(trial, cfg, on_episode=None) -> list[dict]:
         history = explore(cfg_b, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
         t0, cpu0 = time.perf_counter(), time.process_time()
         overrides = [f"planner.{k}={v}" for k, v in (ev.get("planner") or {}).items()] or None
+        kept = {"seconds": 0.0, "cpu_seconds": 0.0}  # tasks an earlier, killed process evaluated
+
+        def count_kept(name, result, was_kept, kept=kept):
+            if was_kept:
+                for key in kept:
+                    kept[key] += result.get(key, 0.0)
+            if on_task is not None:
+                on_task(name, result, was_kept)
+
         res = evaluate_run(trial.run_dir, tasks=ev["task_names"], episodes=int(ev.get("episodes", 3)),
                            task_episodes=block["task_episodes"], propagation=ev.get("propagation", "mean"),
-                           progress=False, planner_overrides=overrides, references=bool(ev.get("references")))
+                           progress=False, planner_overrides=overrides, references=bool(ev.get("references")),
+                           resume=True, on_task=count_kept)
         accuracy = {k: v for k, v in res.items() if k.startswith("heldout_")}
         tasks = {name: {**r, "planner_horizon": r["planner"]["horizon"]} for name, r in res["tasks"].items()}
         histogram = coverage_histogram(cfg_b, trial.run_dir)
@@ -178,12 +158,12 @@ def run_budgets(trial, cfg, on_episode=None) -> list[dict]:
             # the model-free returns on the same evaluation episodes (``evaluate: {references: true}``)
             **({"references": res["references"]} if "references" in res else {}),
             "seconds": {"explore": sum(r["collect_seconds"] + r["train_seconds"] for r in history),
-                        "evaluate": time.perf_counter() - t0},
+                        "evaluate": time.perf_counter() - t0 + kept["seconds"]},
             # CPU seconds of the same work; a pause costs none. Episodes explored by code older than
             # the field have none, and then neither has the record's exploration.
             "cpu_seconds": {"explore": (sum(r["cpu_seconds"] for r in history)
                                         if all("cpu_seconds" in r for r in history) else None),
-                            "evaluate": time.process_time() - cpu0},
+                            "evaluate": time.process_time() - cpu0 + kept["cpu_seconds"]},
             "history": history,
         }
         path = record_path(block, trial.run_dir, budget)

@@ -301,15 +301,17 @@ def _run_trial(trial: Trial, cfg, on_episode) -> dict:
     from torchrl_softae.pipeline.explore import explore
 
     if trial.replication:  # the last budget is the run's episodes: nothing is left to explore
-        history = replication.run_budgets(trial, cfg, on_episode)
+        history = replication.run_budgets(trial, cfg, on_episode, on_task=_task_events(on_episode))
     else:
         history = explore(cfg, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
     row = dict(history[-1])
     if trial.evaluate and not trial.replication and not _evaluated(trial):
         ev = trial.evaluate
+        # a task a killed trial already evaluated for this model is kept (``resume``)
         res = evaluate_run(trial.run_dir, tasks=ev.get("tasks"), episodes=int(ev.get("episodes", 3)),
                            propagation=ev.get("propagation", "mean"), progress=False,
-                           planner_overrides=_planner_overrides(ev), references=bool(ev.get("references")))
+                           planner_overrides=_planner_overrides(ev), references=bool(ev.get("references")),
+                           resume=True, on_task=_task_events(on_episode))
         row.update({f"return/{k}": v["mean_return"] for k, v in res["tasks"].items()})
         if on_episode is not None:
             on_episode({**history[-1], **row, "evaluated": 1})
@@ -326,6 +328,18 @@ def _run_trial(trial: Trial, cfg, on_episode) -> dict:
     return row
 
 
+def _task_events(on_episode):
+    """``evaluate_run``'s ``on_task`` that reports each task evaluated as a trial event (a task
+    planned at a long horizon takes an hour on one core: the sweep shows each as it ends)."""
+    if on_episode is None:
+        return None
+
+    def on_task(name, result, kept):
+        on_episode({"episode": result["episodes_explored"] - 1, f"task_return/{name}": result["mean_return"],
+                    "task_evaluated": 1, "kept": int(kept)})
+    return on_task
+
+
 # ---------------------------------------------------------------------------- engines
 def _result(row: dict) -> dict:
     """What a trial reports per event (to Tune, or to the local driver): the row's finite numbers."""
@@ -333,13 +347,18 @@ def _result(row: dict) -> dict:
 
 
 def progress_line(name: str, row: dict, episodes: int) -> str:
-    """The sweep's one line per trial event: an explored episode, the evaluation, the task policies."""
+    """The sweep's one line per trial event: an explored episode, a task evaluated, the evaluation,
+    the task policies."""
     if row.get("policies_trained"):
         what = ", ".join(f"{k.split('/', 1)[1]} {v:.3g}" for k, v in row.items() if k.startswith("policy_return/"))
         return f"trial {name}: task policies trained (real returns: {what})"
     if row.get("evaluated"):
         what = ", ".join(f"{k.split('/', 1)[1]} {v:.3g}" for k, v in row.items() if k.startswith("return/"))
         return f"trial {name}: evaluated zero-shot (returns: {what})"
+    if row.get("task_evaluated"):
+        what = ", ".join(f"{k.split('/', 1)[1]} with the model of episode {int(row['episode']) + 1}: mean return "
+                         f"{v:.4g}" for k, v in row.items() if k.startswith("task_return/"))
+        return f"trial {name}: zero-shot {what}" + (" (kept from an earlier attempt)" if row.get("kept") else "")
     return (f"trial {name}: episode {int(row['episode']) + 1}/{episodes}, held-out normalized MSE "
             f"{row.get('heldout_nmse', float('nan')):.4g}, coverage {row.get('coverage', float('nan')):.3f}")
 
