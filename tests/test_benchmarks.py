@@ -400,6 +400,13 @@ def test_c6_and_c7_follow_their_rules(tmp_path, monkeypatch):
     # 5 Mean-AE runs at SoftAE's measured 1.1 h, 5 PETS-AE at 1.1 x 1.1 / 0.95
     assert "(vi) SoftFishTarget-v0: missing 5 of mean-ae (has 0), 5 of pets-ae (has 0); Mean-AE and PETS-AE " \
            "about 12 CPU-hours (sweeps/replication/fish_target_ae.yaml)" in row["why"]
+    # the price names the machines of the records it came from (SoftAE's here), and no other env's
+    for seed in range(5):
+        path = tmp_path / "SoftFishTarget-v0" / f"softae-s{seed}-ep50.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()), "machine": {"cpu": "EPYC", "isa": ["avx2"],
+                                                                                "threads": 1}}))
+    row = scorecard.c6(arm, fish(), calibration)
+    assert "Mean-AE and PETS-AE about 12 CPU-hours as measured on EPYC, 1 thread (sweeps/" in row["why"]
     write("SoftFishTarget-v0", "mean-ae", returns={"from-target": 200})
     write("SoftFishTarget-v0", "pets-ae", returns={"from-target": 310})  # above SoftAE: C6 fails
     row = scorecard.c6(arm, fish(), calibration)
