@@ -101,7 +101,7 @@ POINT = ["--env", "outside_envs:OutsidePoint-v0", "--preset", "quick", "--set", 
 def test_a_resumed_evaluation_keeps_the_tasks_evaluated_for_the_same_model_code_and_machine(tmp_path, capsys):
     """``--resume``: a task saved for this model, these settings, this code and this machine is read
     back (a sentinel in its file proves it), the others are planned as an uninterrupted evaluation
-    plans them; another model, other code or a file cut short by a kill is planned again."""
+    plans them; another model, other code, another setting or a file that is not JSON is planned again."""
     assert main(["explore", *POINT, "--episodes", "2", "--set", "heldout_size=40", "--wandb", "disabled", "--quiet",
                  "--run-dir", str(tmp_path)]) == 0
     tasks = ["outside_envs:point_tasks"]  # reach-left, reach-up: 10 steps each

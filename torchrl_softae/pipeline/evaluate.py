@@ -297,7 +297,7 @@ def _saved_result(path: Path, settings: dict) -> dict | None:
         return None
     try:
         saved = json.loads(path.read_text())
-    except json.JSONDecodeError:  # a file cut short by a kill: evaluate again
+    except json.JSONDecodeError:  # not a result (written elsewhere, or cut short): evaluate again
         return None
     expected = json.loads(json.dumps(settings, default=float))
     return saved if all(saved.get(k) == v for k, v in expected.items()) and "returns" in saved else None
