@@ -121,7 +121,9 @@ def test_a_resumed_evaluation_keeps_the_tasks_evaluated_for_the_same_model_code_
     assert resumed["tasks"]["reach-up"]["returns"] == straight["tasks"]["reach-up"]["returns"]
     capsys.readouterr()
     assert main(["evaluate", "--run-dir", str(tmp_path), "--task", tasks[0], "--episodes", "1", "--resume"]) == 0
-    assert "reach-left: mean return 123 over 1 episodes" in capsys.readouterr().out
+    lines = {line.split(":")[0].strip(): line for line in capsys.readouterr().out.splitlines()}
+    assert "mean return 123 over 1 episodes" in lines["reach-left"] and lines["reach-left"].endswith(
+        "(kept: evaluated before, --resume)") and lines["reach-up"].endswith("(kept: evaluated before, --resume)")
     assert main(["evaluate", "--run-dir", str(tmp_path), "--task", tasks[0], "--episodes", "1"]) == 0  # no --resume
     assert json.loads(done.read_text())["returns"] == straight["tasks"]["reach-left"]["returns"]
     for tampered in ({**sentinel, "model_sha256": "0" * 64}, {**sentinel, "code": {**saved["code"], "commit": "0" * 40}},

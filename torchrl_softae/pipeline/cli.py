@@ -79,14 +79,21 @@ def cmd_evaluate(args) -> int:
 
     _threads(args.threads)
     progress, _ = _progress_style(args)
+    kept = []  # the tasks --resume read back
+
+    def on_task(name, _, was_kept):
+        if was_kept:
+            kept.append(name)
+
     res = evaluate_run(args.run_dir, tasks=args.task or None, episodes=args.episodes, seed=args.seed,
                        propagation=args.propagation, progress=progress, planner_overrides=args.overrides,
-                       references=args.references, resume=args.resume)
+                       references=args.references, resume=args.resume, on_task=on_task)
     note = "" if res["heldout_set"] == ENV_HELDOUT else f" [{res['heldout_set']}]"
     print(f"{args.run_dir}: held-out normalized MSE {res['heldout_nmse']:.4g}{note}")
     for name, r in res["tasks"].items():
         extra = _metrics_summary(r["metrics"])
         extra = "  " + extra if extra else ""
+        extra += " (kept: evaluated before, --resume)" if name in kept else ""
         print(f"  {name:>12}: mean return {r['mean_return']:.4g} over {len(r['returns'])} episodes{extra}")
     for label, per_task in (res.get("references") or {}).get("returns", {}).items():
         print(f"  {label}: " + ", ".join(f"{t} {sum(v) / len(v):.4g}" for t, v in per_task.items() if t in res["tasks"]))
