@@ -329,8 +329,8 @@ def _run_trial(trial: Trial, cfg, on_episode) -> dict:
 
 
 def _task_events(on_episode):
-    """``evaluate_run``'s ``on_task`` that reports each task evaluated as a trial event (a task
-    planned at a long horizon takes an hour on one core: the sweep shows each as it ends)."""
+    """``evaluate_run``'s ``on_task`` that reports each task evaluated as a trial event: a task
+    planned at a long horizon is long work, and the sweep shows each as it ends."""
     if on_episode is None:
         return None
 
