@@ -1,11 +1,14 @@
 """Envs and tasks from outside the package, named by reference in the tests (``outside_envs:...``):
 a gymnasium env with float64 observations registered on import (``outside_envs:OutsidePoint-v0``),
-a TorchRL env from a function (``outside_envs:make_torchrl_point``), tasks, and bad references."""
+a TorchRL env from a function (``outside_envs:make_torchrl_point``), tasks (one a catalog task cut
+short), and bad references."""
+import dataclasses
+
 import gymnasium as gym
 import numpy as np
 import torch
 
-from torchrl_softae.tasks import Task
+from torchrl_softae.tasks import Task, tasks_for
 
 
 class OutsidePoint(gym.Env):
@@ -58,6 +61,11 @@ point_tasks = {
 
 def reach_origin():
     return Task("reach-origin", _reach([0.0, 0.0]), 10, description="back to the origin")
+
+
+def short_swingup():
+    """Pendulum-v1's swing-up over 60 steps instead of 200: an evaluation's task in a few seconds."""
+    return dataclasses.replace(tasks_for("Pendulum-v1")["swingup"], name="swingup-60", horizon=60)
 
 
 # Reacher-v5's observation: cos q (2), sin q (2), target (2), joint velocities (2), fingertip - target (2)

@@ -287,6 +287,83 @@ def test_batched_zero_shot_evaluation_sees_the_same_episodes(tmp_path):
     assert a["initial_states"] == c["initial_states"]  # the same seeded episodes as one after another
 
 
+@pytest.fixture(scope="module")
+def pets_run(tmp_path_factory):
+    """A tiny PETS-AE run (2 episodes of Pendulum-v1) for the tests that evaluate it again and again."""
+    run = tmp_path_factory.mktemp("pets_run")
+    assert main(_explore_argv(run, "pets-ae", length=20)) == 0
+    return run
+
+
+def test_a_task_killed_mid_episode_goes_on_from_its_last_progress_save_to_the_same_result(pets_run, capsys):
+    """A batch of episodes killed between two planner calls (``TASK_FAULT_ENV``: ``os._exit``
+    right after the 25th progress save) goes on there with ``--resume``: the actions replayed, the
+    planner's search state and the generators restored, the same returns as an uninterrupted
+    evaluation (trajectory sampling with aleatoric noise, so every generator counts). A save for
+    other settings is ignored; a replay that does not reach the saved states starts over."""
+    from torchrl_softae.pipeline.evaluate import TASK_FAULT_ENV, TaskCheckpoint
+
+    tmp_path = pets_run
+    kwargs = dict(tasks=["outside_envs:short_swingup"], episodes=2, propagation="sample", progress=False)
+    straight = evaluate_run(tmp_path, **kwargs)["tasks"]["swingup-60"]
+    result, partial = tmp_path / "eval" / "swingup-60.json", tmp_path / "eval" / "swingup-60.partial.pt"
+    assert straight["returns"][0] != straight["returns"][1] and "attempts" not in straight and not partial.exists()
+    result.unlink()
+    code = (f"import torch; torch.set_num_threads({torch.get_num_threads()}); "  # the machine is in the key
+            f"from torchrl_softae.pipeline.evaluate import evaluate_run; "
+            f"evaluate_run({str(tmp_path)!r}, **{kwargs!r}, resume=True, checkpoint_seconds=0)")
+    proc = subprocess.run([sys.executable, "-c", code], env={**os.environ, TASK_FAULT_ENV: "25"},
+                          cwd=Path(__file__).parent, capture_output=True, text=True)  # where outside_envs is
+    assert proc.returncode == 17, proc.stderr[-2000:]
+    assert partial.exists() and not result.exists()
+    saved = torch.load(partial, weights_only=True)
+    assert saved["actions"].shape == (25, 2, 1) and saved["attempts"] == 1 and saved["seconds"] > 0
+    key = json.loads(saved["key"])
+    assert TaskCheckpoint(partial, key).saved is not None
+    assert TaskCheckpoint(partial, {**key, "seed": 1}).saved is None
+    assert TaskCheckpoint(partial, key, resume=False).saved is None
+
+    # a replay that misses the saved states (as a non-deterministic env would) starts the task over
+    kept = partial.read_bytes()
+    torch.save({**saved, "observations": saved["observations"] + 1}, partial)
+    capsys.readouterr()
+    over = evaluate_run(tmp_path, **kwargs, resume=True)["tasks"]["swingup-60"]
+    assert "replaying its 25 steps did not reach the states it saved" in capsys.readouterr().out
+    assert over["returns"] == straight["returns"] and not partial.exists()
+
+    partial.write_bytes(kept)
+    result.unlink()
+    assert main(["evaluate", "--run-dir", str(tmp_path), "--task", kwargs["tasks"][0], "--episodes", "2",
+                 "--propagation", "sample", "--resume"]) == 0
+    assert "(went on where a killed attempt stopped, --resume: 2 attempts)" in capsys.readouterr().out
+    resumed = json.loads(result.read_text())
+    assert resumed["returns"] == straight["returns"] and resumed["metrics"] == straight["metrics"]
+    assert resumed["attempts"] == 2 and 0 < resumed["earlier_seconds"] < resumed["seconds"]
+    assert not partial.exists()
+
+
+def test_sequential_episodes_go_on_after_those_a_killed_attempt_finished(pets_run, tmp_path):
+    """One episode after another (a task family, or ``batched=False``): each finished episode is
+    saved, and a resumed attempt goes on after them (a sentinel return proves the first is read
+    back); the others are those of an uninterrupted evaluation."""
+    from outside_envs import short_swingup
+    from torchrl_softae.pipeline.evaluate import TaskCheckpoint, load_run, zero_shot
+
+    cfg, model, _ = load_run(pets_run)
+    task = short_swingup()
+    path, key = tmp_path / "task.partial.pt", {"what": "this test"}
+    straight = zero_shot(cfg, model, task, episodes=3, seed=2, progress=False, batched=False,
+                         checkpoint=TaskCheckpoint(path, key))
+    saved = torch.load(path, weights_only=True)
+    assert json.loads(saved["episodes"])["returns"] == straight["returns"]
+    first = {k: v[:1] for k, v in straight.items()}
+    torch.save({**saved, "episodes": json.dumps({**first, "returns": [123.0]})}, path)
+    resumed = zero_shot(cfg, model, task, episodes=3, seed=2, progress=False, batched=False,
+                        checkpoint=TaskCheckpoint(path, key))
+    assert resumed["returns"] == [123.0, *straight["returns"][1:]]
+    assert resumed["initial_states"] == straight["initial_states"]
+
+
 def test_a_run_from_before_a_new_config_field_resumes(tmp_path):
     """Config fields added later (e.g. model.symlog) take their defaults for older runs."""
     run = tmp_path / "run"

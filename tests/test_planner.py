@@ -201,6 +201,37 @@ def test_warm_start_shift_and_reset():
     assert planner._mean is None and planner._elites is None
 
 
+@pytest.mark.parametrize("kind", [ICEMPlanner, MPPIPlanner])
+def test_a_planner_given_another_ones_search_state_takes_the_same_actions(kind):
+    """``search_state`` holds all a call depends on besides its input (the warm start, the
+    planner's generator and the model env's, which trajectory sampling's aleatoric noise draws
+    from): a second planner, seeded otherwise, loaded with it continues the first one's episode."""
+    torch.manual_seed(0)
+    model_env = _model_env("sample", aleatoric_noise=True)
+    env = TransformedEnv(model_env, UncertaintyReward())
+    settings = dict(planning_horizon=4, num_candidates=16, num_particles=3, optim_steps=2, seed=0)
+    if kind is ICEMPlanner:
+        settings["top_k"] = 4
+    first = kind(env, **settings)
+    states = [TensorDict({"observation": torch.randn(2, 3)}, [2]) for _ in range(4)]
+    first(states[0].clone())
+    state = first.search_state()
+    assert state["evaluator_generator"] is not None and all(v is not None for v in state["warm_start"].values())
+    ahead = [first(td.clone())["action"] for td in states[1:]]
+
+    second = kind(TransformedEnv(_model_env("sample", aleatoric_noise=True), UncertaintyReward()), **{**settings, "seed": 9})
+    second.env.base_env.world_model.load_state_dict(model_env.world_model.state_dict())
+    second.env.base_env.set_seed(5)
+    second.load_search_state(state)
+    for td, action in zip(states[1:], ahead):
+        assert torch.equal(second(td.clone())["action"], action)
+    # without the state the same calls plan otherwise (the test can tell)
+    third = kind(env, **{**settings, "seed": 9})
+    assert not torch.equal(third(states[1].clone())["action"], ahead[0])
+    third.reset()
+    assert all(getattr(third, name) is None for name in third._warm_start)
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [

@@ -134,6 +134,13 @@ class EnsembleModelEnv(ModelBasedEnvBase, ActionSequenceEvaluator):
     def _set_seed(self, seed: int | None) -> None:
         self._generator.manual_seed(int(seed) if seed is not None else 0)
 
+    def generator_state(self) -> torch.Tensor:
+        # trajectory sampling draws its aleatoric noise from this env's generator
+        return self._generator.get_state()
+
+    def set_generator_state(self, state: torch.Tensor) -> None:
+        self._generator.set_state(state)
+
     def _randn(self, shape, like: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         return torch.randn(shape, generator=generator or self._generator, dtype=like.dtype, device=like.device)
 

@@ -41,6 +41,7 @@ def get_env_entry(env_id: str) -> EnvEntry:
             module = importlib.import_module(f"torchrl_softae.pipeline.entries.{record.family}")
             entry = module.entry(record, tasks_for(env_id))
             entry.defaults.setdefault("episode_length", record.max_episode_steps)
+            entry.replayable = True  # every catalog env simulates (SoPrA-v0 is the twin)
         else:
             external = importlib.import_module("torchrl_softae.pipeline.entries.external")
             try:

@@ -93,7 +93,10 @@ def cmd_evaluate(args) -> int:
     for name, r in res["tasks"].items():
         extra = _metrics_summary(r["metrics"])
         extra = "  " + extra if extra else ""
-        extra += " (kept: evaluated before, --resume)" if name in kept else ""
+        if name in kept:
+            extra += " (kept: evaluated before, --resume)"
+        elif r.get("attempts", 1) > 1:
+            extra += f" (went on where a killed attempt stopped, --resume: {r['attempts']} attempts)"
         print(f"  {name:>12}: mean return {r['mean_return']:.4g} over {len(r['returns'])} episodes{extra}")
     for label, per_task in (res.get("references") or {}).get("returns", {}).items():
         print(f"  {label}: " + ", ".join(f"{t} {sum(v) / len(v):.4g}" for t, v in per_task.items() if t in res["tasks"]))

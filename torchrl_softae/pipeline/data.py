@@ -20,7 +20,7 @@ from torchrl_softae.pipeline.entries.entry import EnvEntry
 from torchrl_softae.pipeline.runs import RunDir, atomic_torch_save
 from torchrl_softae.seeding import derive_seed
 
-__all__ = ["make_real_env", "episode_seed", "load_transitions", "TRANSITION_KEYS", "seed_everything", "heldout_set", "reference_set", "reference_scale",
+__all__ = ["make_real_env", "episode_seed", "load_transitions", "TRANSITION_KEYS", "seed_everything", "global_rng_states", "set_global_rng_states", "heldout_set", "reference_set", "reference_scale",
            "normalized_mse", "trivial_nmse", "legacy_normalized_mse", "coverage", "coverage_counts", "projection_bounds", "COVERAGE_BINS", "ModelAccuracy"]
 
 
@@ -38,6 +38,24 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
     np.random.seed(seed % (2**32))
     random.seed(seed)
+
+
+def global_rng_states() -> dict:
+    """The states of the generators :func:`seed_everything` seeds (torch's, numpy's, Python's),
+    as tensors and numbers (``torch.load(weights_only=True)`` reads them back)."""
+    kind, keys, pos, has_gauss, gauss = np.random.get_state()
+    version, internal, gauss_next = random.getstate()
+    return {"torch": torch.get_rng_state(), "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, gauss],
+            "python": [version, torch.tensor(internal, dtype=torch.int64), gauss_next]}
+
+
+def set_global_rng_states(states: dict) -> None:
+    """Restore :func:`global_rng_states`."""
+    torch.set_rng_state(states["torch"])
+    kind, keys, pos, has_gauss, gauss = states["numpy"]
+    np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, gauss))
+    version, internal, gauss_next = states["python"]
+    random.setstate((version, tuple(internal.tolist()), gauss_next))
 
 
 def _cache_dir() -> Path:

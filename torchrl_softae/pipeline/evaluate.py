@@ -14,13 +14,21 @@ from torchrl_softae.modules import EnsembleWorldModel
 from torchrl_softae.pipeline.builders import build_planner_policy, build_world_model
 from torchrl_softae.pipeline.catalog import ENV_HELDOUT, get_env_entry, get_task, get_tasks, heldout_note, run_entry
 from torchrl_softae.pipeline.config import ConfigError, ExploreConfig, apply_overrides
-from torchrl_softae.pipeline.data import ModelAccuracy, episode_seed, make_real_env, seed_everything
+from torchrl_softae.pipeline.data import (ModelAccuracy, episode_seed, global_rng_states, make_real_env,
+                                          seed_everything, set_global_rng_states)
 from torchrl_softae.pipeline.provenance import code_identity, machine
-from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir
+from torchrl_softae.pipeline.runs import REFERENCES_FILE, CheckpointError, RunDir, atomic_torch_save, exit_once_after
 from torchrl_softae.tasks.base import Task, TaskReward
 
 __all__ = ["load_run", "zero_shot", "task_policy", "reference_returns", "evaluate_run", "eval_file_name",
-           "evaluation_identity", "write_references", "REFERENCE_POLICIES", "REFERENCES_FILE"]
+           "evaluation_identity", "write_references", "TaskCheckpoint", "REFERENCE_POLICIES", "REFERENCES_FILE",
+           "TASK_CHECKPOINT_SECONDS", "TASK_FAULT_ENV"]
+
+#: seconds of planning between two saves of a task's progress (at most what a kill loses)
+TASK_CHECKPOINT_SECONDS = 60.0
+#: test hook (:func:`~torchrl_softae.pipeline.runs.exit_once_after`):
+#: ``SOFTAE_EXIT_AFTER_TASK_CHECKPOINT=K`` dies right after a task's K-th progress save, like a kill
+TASK_FAULT_ENV = "SOFTAE_EXIT_AFTER_TASK_CHECKPOINT"
 
 
 def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, dict]:
@@ -40,19 +48,27 @@ def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, di
     return cfg, model.eval(), state
 
 
-def task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for, keep_trajectories: bool = False) -> dict:
+def task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for, keep_trajectories: bool = False,
+                  checkpoint: TaskCheckpoint | None = None) -> dict:
     """Roll out ``policy_for(env, episode_seed, episode_task)`` for ``episodes`` seeded episodes of
     ``task`` on the real env with the task's reward: ``{"returns": [...], "metrics": [{...}, ...],
     "initial_states": [...]}``, and with ``keep_trajectories`` the episodes' ``(T,)`` rollout
     tensordicts under ``"trajectories"`` (for a study that looks inside an episode).
 
     The one place that fixes the evaluation episodes: zero-shot controllers and the model-free
-    references see the same initial states (and, for a task family, the same targets)."""
+    references see the same initial states (and, for a task family, the same targets).
+
+    ``checkpoint``: saves the episodes done after each one, and goes on after those an earlier,
+    killed attempt saved (each episode is seeded on its own, so the rest are the same)."""
     real = make_real_env(get_env_entry(env), task.horizon)
     reward = TaskReward(task)
     real.append_transform(reward)
     returns, metrics, starts, trajectories = [], [], [], []
-    for i in range(episodes):
+    saved = checkpoint.saved if checkpoint is not None and not keep_trajectories else None
+    done = json.loads(saved["episodes"]) if saved is not None and saved.get("kind") == "episodes" else {}
+    for key, into in (("returns", returns), ("metrics", metrics), ("initial_states", starts)):
+        into.extend(done.get(key, [])[:episodes])
+    for i in range(len(returns), episodes):
         s = episode_seed(seed, i)
         seed_everything(s)
         reward.task = episode_task = task.for_episode(s)
@@ -68,6 +84,10 @@ def task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for, ke
             metrics[-1].update({f"target_{k}": v for k, v in episode_task.params.items()})
         if keep_trajectories:
             trajectories.append(traj)
+        elif checkpoint is not None:
+            # as JSON, which keeps the numbers exactly and is what the result is written as
+            checkpoint.save({"kind": "episodes", "episodes": json.dumps(
+                {"returns": returns, "metrics": metrics, "initial_states": starts}, default=float)})
     real.close()
     res = {"returns": returns, "metrics": metrics, "initial_states": starts}
     return res | {"trajectories": trajectories} if keep_trajectories else res
@@ -111,6 +131,7 @@ def zero_shot(
     propagation: str = "mean",
     progress: bool = True,
     batched: bool = True,
+    checkpoint: TaskCheckpoint | None = None,
 ) -> dict:
     """MPC with the task reward on the learned model, acting on the real env.
 
@@ -119,6 +140,9 @@ def zero_shot(
     after another). Initial states are the same either way (seeded per episode); the planner's
     random draws differ. Returns ``{"returns": [...], "metrics": [{...}, ...]}``, one entry per
     episode; deterministic for a given seed.
+
+    ``checkpoint``: the task's progress is saved there (:class:`TaskCheckpoint`), and what an
+    earlier, killed attempt saved is continued: the same returns as one uninterrupted call.
     """
     bar = None
     if progress:
@@ -130,18 +154,25 @@ def zero_shot(
         return task_policy(cfg, model, episode_task, real.action_spec, propagation, seed=s, progress=bar)
 
     if batched and episodes > 1 and task.instantiate is None and task.advance is None:
-        res = _task_rollouts_batched(cfg.env, task, episodes, seed, planner)
+        res = _task_rollouts_batched(cfg.env, task, episodes, seed, planner, checkpoint, bar)
     else:
-        res = task_rollouts(cfg.env, task, episodes, seed, planner)
+        res = task_rollouts(cfg.env, task, episodes, seed, planner, checkpoint=checkpoint)
     if bar is not None:
         bar.close()
     return res
 
 
-def _task_rollouts_batched(env: str, task: Task, episodes: int, seed: int, policy_for) -> dict:
+def _task_rollouts_batched(env: str, task: Task, episodes: int, seed: int, policy_for,
+                           checkpoint: TaskCheckpoint | None = None, bar=None) -> dict:
     """:func:`task_rollouts` with the episodes side by side: E real envs seeded like the
     sequential episodes, one policy call per step for the ``(E,)`` batch of their states. An
-    episode that ends stops stepping (its state keeps its slot in the batch)."""
+    episode that ends stops stepping (its state keeps its slot in the batch).
+
+    ``checkpoint`` (a replayable env, :attr:`~torchrl_softae.pipeline.entries.entry.EnvEntry.replayable`,
+    and a policy with a ``search_state``): every ``checkpoint.every`` seconds the actions taken so
+    far, the states reached, the policy's search state and the global generators are saved. A
+    resumed attempt replays the actions on freshly seeded envs, checks that they reach the saved
+    states (else it starts the task over), restores the rest and goes on."""
     from torchrl.envs.utils import step_mdp
 
     entry = get_env_entry(env)
@@ -155,14 +186,14 @@ def _task_rollouts_batched(env: str, task: Task, episodes: int, seed: int, polic
         envs.append(real)
         tds.append(real.reset())
     policy = policy_for(envs[0], episode_seed(seed, 0), task)
+    if not (entry.replayable and hasattr(policy, "search_state")):
+        checkpoint = None
     keys = list(policy.in_keys)
     steps = [[] for _ in envs]
     alive = [True] * episodes
-    for _ in range(task.horizon):
-        if not any(alive):
-            break
-        batch = torch.stack([td.select(*keys) for td in tds])
-        actions = policy(batch).get("action")
+    taken = []  # the (E, d_a) actions of every step so far
+
+    def act(actions):
         for i, real in enumerate(envs):
             if not alive[i]:
                 continue
@@ -171,6 +202,34 @@ def _task_rollouts_batched(env: str, task: Task, episodes: int, seed: int, polic
             if bool(out.get(("next", "done"))):
                 alive[i] = False
             tds[i] = step_mdp(out)
+        taken.append(actions)
+
+    def states():
+        return torch.stack([td.get("observation") for td in tds])
+
+    saved = checkpoint.saved if checkpoint is not None else None
+    if saved is not None and saved.get("kind") == "steps":
+        for actions in saved["actions"]:
+            act(actions)
+        if not torch.equal(states(), saved["observations"]):
+            for real in envs:
+                real.close()
+            print(f"{checkpoint.path}: replaying its {len(taken)} steps did not reach the states it saved "
+                  f"(the env is not deterministic here): {task.name} starts over")
+            checkpoint.saved = None
+            return _task_rollouts_batched(env, task, episodes, seed, policy_for, checkpoint, bar)
+        policy.load_search_state(saved["planner"])
+        set_global_rng_states(saved["rng"])
+        if bar is not None:
+            bar.update(sum(len(t) for t in steps))
+    for _ in range(len(taken), task.horizon):
+        if not any(alive):
+            break
+        batch = torch.stack([td.select(*keys) for td in tds])
+        act(policy(batch).get("action"))
+        if checkpoint is not None and checkpoint.due():
+            checkpoint.save({"kind": "steps", "actions": torch.stack(taken), "observations": states(),
+                             "planner": policy.search_state(), "rng": global_rng_states()})
     returns, metrics, starts = [], [], []
     for real, traj in zip(envs, steps):
         traj = torch.stack(traj)
@@ -179,6 +238,67 @@ def _task_rollouts_batched(env: str, task: Task, episodes: int, seed: int, polic
         metrics.append(task.metrics(traj))
         real.close()
     return {"returns": returns, "metrics": metrics, "initial_states": starts}
+
+
+class TaskCheckpoint:
+    """One task's evaluation in progress, saved at ``path`` (``RUN/eval/TASK.partial.pt``) so that
+    a killed evaluation goes on where it stopped rather than at the task's start.
+
+    ``key``: what the saved progress must have been computed with to be continued (the settings,
+    the model, the code, the machine: :func:`evaluate_run`'s); a file saved for another key, or
+    unreadable, is ignored and replaced. ``resume``: continue what is saved (else start afresh).
+    ``every``: seconds between two saves of a batch of episodes in progress (finished episodes of
+    sequential ones are saved as each ends). Seconds and CPU seconds add up over the attempts.
+    """
+
+    def __init__(self, path: str | Path, key: dict, resume: bool = True, every: float = TASK_CHECKPOINT_SECONDS):
+        self.path, self.every = Path(path), float(every)
+        self.key = json.dumps(key, sort_keys=True, default=float)
+        self.saved = self._read() if resume else None
+        before = self.saved or {}
+        self.attempts = int(before.get("attempts", 0)) + 1
+        self.earlier_seconds = float(before.get("seconds", 0.0))
+        self.earlier_cpu_seconds = float(before.get("cpu_seconds", 0.0))
+        self._t0, self._cpu0 = time.perf_counter(), time.process_time()
+        self._last_save, self.saves = self._t0, 0
+
+    def _read(self) -> dict | None:
+        if not self.path.exists():
+            return None
+        try:
+            saved = torch.load(self.path, map_location="cpu", weights_only=True)
+        except Exception:  # cut short or not ours: the task starts over
+            return None
+        return saved if isinstance(saved, dict) and saved.get("key") == self.key else None
+
+    def seconds(self) -> float:
+        """Wall seconds over every attempt so far."""
+        return self.earlier_seconds + time.perf_counter() - self._t0
+
+    def cpu_seconds(self) -> float:
+        return self.earlier_cpu_seconds + time.process_time() - self._cpu0
+
+    def due(self) -> bool:
+        return time.perf_counter() - self._last_save >= self.every
+
+    def save(self, progress: dict) -> None:
+        atomic_torch_save({**progress, "key": self.key, "attempts": self.attempts, "seconds": self.seconds(),
+                           "cpu_seconds": self.cpu_seconds()}, self.path)
+        self._last_save = time.perf_counter()
+        self.saves += 1
+        exit_once_after(TASK_FAULT_ENV, self.saves, self.path.parent, "task checkpoint")
+
+    def provenance(self) -> dict:
+        """What a finished task's result records of its attempts: their seconds, and how many
+        processes computed it with the seconds of the earlier ones (when more than one)."""
+        out = {"seconds": self.seconds(), "cpu_seconds": self.cpu_seconds()}
+        if self.attempts > 1:
+            out.update(attempts=self.attempts, earlier_seconds=self.earlier_seconds,
+                       earlier_cpu_seconds=self.earlier_cpu_seconds)
+        return out
+
+    def discard(self) -> None:
+        self.path.unlink(missing_ok=True)
 
 
 #: the model-free references a zero-shot controller is put next to, and their table labels
@@ -215,7 +335,7 @@ def evaluate_run(
     run_dir: str | Path, tasks: list[str] | None = None, episodes: int = 3, seed: int = 0,
     propagation: str = "mean", progress: bool = True, planner_overrides: list[str] | None = None,
     references: bool = False, task_episodes: dict[str, int] | None = None, resume: bool = False,
-    on_task=None,
+    on_task=None, checkpoint_seconds: float = TASK_CHECKPOINT_SECONDS,
 ) -> dict:
     """Zero-shot returns on ``tasks`` (names of the env's tasks or ``module:attr`` references;
     default: all of the env's) and held-out normalized MSE.
@@ -230,9 +350,12 @@ def evaluate_run(
 
     ``resume``: a task whose saved result was computed for this checkpoint's model with these
     settings, by the same code on the same machine (:func:`evaluation_identity`), is read
-    back instead of planned again, so a killed evaluation loses only the task it was in.
+    back instead of planned again, and a task a killed evaluation was in goes on from its last
+    progress save (``RUN/eval/TASK.partial.pt``, every ``checkpoint_seconds`` of planning:
+    :class:`TaskCheckpoint`), to the same result. Progress is saved with or without ``resume``.
     ``on_task(name, result, kept)`` is called after each task (``kept``: read back; its
-    ``seconds`` and ``cpu_seconds`` are those of the process that planned it).
+    ``seconds`` and ``cpu_seconds`` are those of the processes that planned it, ``earlier_*``
+    the part of them spent by killed attempts).
     """
     cfg, model, state = load_run(run_dir)
     if planner_overrides:
@@ -264,11 +387,13 @@ def evaluate_run(
         res = _saved_result(path, settings) if resume else None
         kept = res is not None
         if not kept:
-            t0, cpu0 = time.perf_counter(), time.process_time()
-            res = zero_shot(cfg, model, task, episodes=n, seed=seed, propagation=propagation, progress=progress)
+            checkpoint = TaskCheckpoint(path.with_suffix(".partial.pt"), settings, resume, checkpoint_seconds)
+            res = zero_shot(cfg, model, task, episodes=n, seed=seed, propagation=propagation, progress=progress,
+                            checkpoint=checkpoint)
             res["mean_return"] = float(np.mean(res["returns"]))
-            res.update(settings, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - cpu0)
+            res.update(settings, **checkpoint.provenance())
             run.write_json(path, res)
+            checkpoint.discard()
         out["tasks"][name] = res
         if on_task is not None:
             on_task(name, res, kept)

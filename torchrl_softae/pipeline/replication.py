@@ -133,19 +133,18 @@ def run_budgets(trial, cfg, on_episode=None, on_task=None) -> list[dict]:
         history = explore(cfg_b, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
         t0, cpu0 = time.perf_counter(), time.process_time()
         overrides = [f"planner.{k}={v}" for k, v in (ev.get("planner") or {}).items()] or None
-        kept = {"seconds": 0.0, "cpu_seconds": 0.0}  # tasks an earlier, killed process evaluated
+        earlier = {"seconds": 0.0, "cpu_seconds": 0.0}  # spent on these tasks by earlier, killed processes
 
-        def count_kept(name, result, was_kept, kept=kept):
-            if was_kept:
-                for key in kept:
-                    kept[key] += result.get(key, 0.0)
+        def count_earlier(name, result, was_kept, earlier=earlier):
+            for key in earlier:  # a kept task wholly, a resumed one its part before the kill
+                earlier[key] += result.get(key, 0.0) if was_kept else result.get(f"earlier_{key}", 0.0)
             if on_task is not None:
                 on_task(name, result, was_kept)
 
         res = evaluate_run(trial.run_dir, tasks=ev["task_names"], episodes=int(ev.get("episodes", 3)),
                            task_episodes=block["task_episodes"], propagation=ev.get("propagation", "mean"),
                            progress=False, planner_overrides=overrides, references=bool(ev.get("references")),
-                           resume=True, on_task=count_kept)
+                           resume=True, on_task=count_earlier)
         accuracy = {k: v for k, v in res.items() if k.startswith("heldout_")}
         tasks = {name: {**r, "planner_horizon": r["planner"]["horizon"]} for name, r in res["tasks"].items()}
         histogram = coverage_histogram(cfg_b, trial.run_dir)
@@ -158,12 +157,12 @@ def run_budgets(trial, cfg, on_episode=None, on_task=None) -> list[dict]:
             # the model-free returns on the same evaluation episodes (``evaluate: {references: true}``)
             **({"references": res["references"]} if "references" in res else {}),
             "seconds": {"explore": sum(r["collect_seconds"] + r["train_seconds"] for r in history),
-                        "evaluate": time.perf_counter() - t0 + kept["seconds"]},
+                        "evaluate": time.perf_counter() - t0 + earlier["seconds"]},
             # CPU seconds of the same work; a pause costs none. Episodes explored by code older than
             # the field have none, and then neither has the record's exploration.
             "cpu_seconds": {"explore": (sum(r["cpu_seconds"] for r in history)
                                         if all("cpu_seconds" in r for r in history) else None),
-                            "evaluate": time.process_time() - cpu0 + kept["cpu_seconds"]},
+                            "evaluate": time.process_time() - cpu0 + earlier["cpu_seconds"]},
             "history": history,
         }
         path = record_path(block, trial.run_dir, budget)

@@ -336,7 +336,7 @@ def _task_events(on_episode):
 
     def on_task(name, result, kept):
         on_episode({"episode": result["episodes_explored"] - 1, f"task_return/{name}": result["mean_return"],
-                    "task_evaluated": 1, "kept": int(kept)})
+                    "task_evaluated": 1, "kept": int(kept), "attempts": 1 if kept else result.get("attempts", 1)})
     return on_task
 
 
@@ -358,7 +358,11 @@ def progress_line(name: str, row: dict, episodes: int) -> str:
     if row.get("task_evaluated"):
         what = ", ".join(f"{k.split('/', 1)[1]} with the model of episode {int(row['episode']) + 1}: mean return "
                          f"{v:.4g}" for k, v in row.items() if k.startswith("task_return/"))
-        return f"trial {name}: zero-shot {what}" + (" (kept from an earlier attempt)" if row.get("kept") else "")
+        if row.get("kept"):
+            what += " (kept from an earlier attempt)"
+        elif row.get("attempts", 1) > 1:
+            what += f" (went on where a killed attempt stopped: {int(row['attempts'])} attempts)"
+        return f"trial {name}: zero-shot {what}"
     return (f"trial {name}: episode {int(row['episode']) + 1}/{episodes}, held-out normalized MSE "
             f"{row.get('heldout_nmse', float('nan')):.4g}, coverage {row.get('coverage', float('nan')):.3f}")
 

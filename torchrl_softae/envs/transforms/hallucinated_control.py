@@ -126,6 +126,13 @@ class RealActionPolicy(TensorDictModuleBase):
         if hasattr(self.planner, "reset"):
             self.planner.reset()
 
+    def search_state(self) -> dict:
+        """The wrapped planner's (:meth:`~torchrl_softae.modules.planners.common.SequencePlannerBase.search_state`)."""
+        return self.planner.search_state()
+
+    def load_search_state(self, state: dict) -> None:
+        self.planner.load_search_state(state)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         tensordict = self.planner(tensordict)
         tensordict.set(self.action_key, tensordict.get(self.action_key)[..., : self.action_dim])

@@ -87,9 +87,38 @@ class SequencePlannerBase(MPCPlannerBase):
         self.register_buffer("_high", high)
 
     # ------------------------------------------------------------------ state
+    #: the attributes one call hands to the next (the warm start); :meth:`reset` clears them
+    _warm_start: tuple[str, ...] = ()
+
     def set_seed(self, seed: int) -> int:
         self._generator.manual_seed(seed)
         return seed
+
+    def reset(self) -> None:
+        """Forget the warm start (call at every episode start)."""
+        for name in self._warm_start:
+            setattr(self, name, None)
+
+    def search_state(self) -> dict:
+        """What the next call depends on besides its input: the warm start and the states of the
+        random generators it draws from (the planner's, and its model env's, see
+        :meth:`~torchrl_softae.modules.planners.contract.ActionSequenceEvaluator.generator_state`).
+        A planner given this state by :meth:`load_search_state` takes the actions this one would
+        take, so an episode stopped between two calls can go on elsewhere (a killed evaluation)."""
+        return {
+            "generator": self._generator.get_state(),
+            "evaluator_generator": None if self.evaluator is None else self.evaluator.generator_state(),
+            "warm_start": {name: getattr(self, name) for name in self._warm_start},
+        }
+
+    def load_search_state(self, state: dict) -> None:
+        """Continue from :meth:`search_state` (tensors are moved to the env's device)."""
+        self._generator.set_state(state["generator"])
+        if self.evaluator is not None and state["evaluator_generator"] is not None:
+            self.evaluator.set_generator_state(state["evaluator_generator"])
+        for name in self._warm_start:
+            value = state["warm_start"][name]
+            setattr(self, name, None if value is None else value.to(self.env_device))
 
     @property
     def effective_particles(self) -> int:

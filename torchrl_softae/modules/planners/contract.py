@@ -72,6 +72,16 @@ class ActionSequenceEvaluator(abc.ABC):
         """
 
 
+    def generator_state(self) -> torch.Tensor | None:
+        """The state of the env's own random generator if scoring draws from it (besides the
+        caller's ``generator``), for a planner's ``search_state``; ``None`` if it draws from none."""
+        return None
+
+    def set_generator_state(self, state: torch.Tensor) -> None:
+        """Restore :meth:`generator_state`."""
+        raise NotImplementedError(f"{type(self).__name__} scores without a generator of its own")
+
+
 class PlanningTransform:
     """Mixin of TorchRL transforms that can also act on plain tensors, so that a model env may score
     sequences in a tight tensor loop (no TensorDict per step) when every transform of its stack is

@@ -70,6 +70,8 @@ class ICEMPlanner(SequencePlannerBase):
         torch.Size([1])
     """
 
+    _warm_start = ("_mean", "_elites")  # (B, H, d) shifted mean, (B, K, H, d) shifted elites
+
     def __init__(
         self,
         env: EnvBase,
@@ -127,11 +129,6 @@ class ICEMPlanner(SequencePlannerBase):
         self._mean: torch.Tensor | None = None
         self._elites: torch.Tensor | None = None
         self.last_info: dict = {}
-
-    def reset(self) -> None:
-        """Forget the warm start (call at every episode start)."""
-        self._mean = None
-        self._elites = None
 
     # ------------------------------------------------------------------ optimization
     @torch.no_grad()

@@ -48,6 +48,8 @@ class MPPIPlanner(SequencePlannerBase):
         >>> planner(TensorDict({"observation": torch.zeros(3)}, []))["action"]
     """
 
+    _warm_start = ("_mean",)  # (B, H, d) shifted mean
+
     def __init__(
         self,
         env: EnvBase,
@@ -84,10 +86,6 @@ class MPPIPlanner(SequencePlannerBase):
         self.noise_beta = float(noise_beta)
         self._mean: torch.Tensor | None = None
         self.last_info: dict = {}
-
-    def reset(self) -> None:
-        """Forget the warm start (call at every episode start)."""
-        self._mean = None
 
     @torch.no_grad()
     def planning(self, tensordict: TensorDictBase) -> torch.Tensor:

@@ -32,6 +32,10 @@ class EnvEntry:
             fixed reference set whose per-dimension std normalizes the model error (default:
             none, the held-out set alone).
         heldout_file: the user's held-out transitions (``--heldout FILE``) replacing ``heldout``.
+        replayable: an episode is a function of its seed and its actions (a simulator), so an
+            evaluation killed mid-episode resumes by replaying the actions it took. Never set it
+            for real hardware: a replay would move the robot. The catalog's envs (simulators and
+            the SoPrA twin) are; an outside env is not (its evaluation resumes at a task's start).
     """
 
     env_id: str
@@ -47,6 +51,7 @@ class EnvEntry:
     accuracy_groups: dict = field(default_factory=dict)  # extra normalized-MSE reports, name -> dims
     reference: Callable[[int, int], TensorDictBase] | None = None  # extra broad transitions for the metric's scale
     heldout_file: str | None = None
+    replayable: bool = False
     _specs: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def specs(self) -> tuple:
