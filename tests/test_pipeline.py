@@ -352,13 +352,13 @@ def test_sequential_episodes_go_on_after_those_a_killed_attempt_finished(pets_ru
     cfg, model, _ = load_run(pets_run)
     task = short_swingup()
     path, key = tmp_path / "task.partial.pt", {"what": "this test"}
-    straight = zero_shot(cfg, model, task, episodes=3, seed=2, progress=False, batched=False,
+    straight = zero_shot(cfg, model, task, episodes=2, seed=2, progress=False, batched=False,
                          checkpoint=TaskCheckpoint(path, key))
     saved = torch.load(path, weights_only=True)
     assert json.loads(saved["episodes"])["returns"] == straight["returns"]
     first = {k: v[:1] for k, v in straight.items()}
     torch.save({**saved, "episodes": json.dumps({**first, "returns": [123.0]})}, path)
-    resumed = zero_shot(cfg, model, task, episodes=3, seed=2, progress=False, batched=False,
+    resumed = zero_shot(cfg, model, task, episodes=2, seed=2, progress=False, batched=False,
                         checkpoint=TaskCheckpoint(path, key))
     assert resumed["returns"] == [123.0, *straight["returns"][1:]]
     assert resumed["initial_states"] == straight["initial_states"]
