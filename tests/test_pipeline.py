@@ -340,6 +340,9 @@ def test_a_task_killed_mid_episode_goes_on_from_its_last_progress_save_to_the_sa
     assert resumed["returns"] == straight["returns"] and resumed["metrics"] == straight["metrics"]
     assert resumed["attempts"] == 2 and 0 < resumed["earlier_seconds"] < resumed["seconds"]
     assert not partial.exists()
+    partial.write_bytes(kept)  # as a kill between writing the result and removing the progress leaves it
+    assert evaluate_run(tmp_path, **kwargs, resume=True)["tasks"]["swingup-60"] == resumed
+    assert not partial.exists()
 
 
 def test_sequential_episodes_go_on_after_those_a_killed_attempt_finished(pets_run, tmp_path):

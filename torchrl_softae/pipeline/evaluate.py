@@ -386,14 +386,14 @@ def evaluate_run(
                     "success_metric": task.success_metric, **identity}
         res = _saved_result(path, settings) if resume else None
         kept = res is not None
+        checkpoint = TaskCheckpoint(path.with_suffix(".partial.pt"), settings, resume and not kept, checkpoint_seconds)
         if not kept:
-            checkpoint = TaskCheckpoint(path.with_suffix(".partial.pt"), settings, resume, checkpoint_seconds)
             res = zero_shot(cfg, model, task, episodes=n, seed=seed, propagation=propagation, progress=progress,
                             checkpoint=checkpoint)
             res["mean_return"] = float(np.mean(res["returns"]))
             res.update(settings, **checkpoint.provenance())
             run.write_json(path, res)
-            checkpoint.discard()
+        checkpoint.discard()  # (also what a process killed between the two writes left beside a result)
         out["tasks"][name] = res
         if on_task is not None:
             on_task(name, res, kept)
