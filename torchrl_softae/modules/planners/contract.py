@@ -71,7 +71,6 @@ class ActionSequenceEvaluator(abc.ABC):
             whose return is NaN/inf gets ``-inf`` (it never wins).
         """
 
-
     def generator_state(self) -> torch.Tensor | None:
         """The state of the env's own random generator if scoring draws from it (besides the
         caller's ``generator``), for a planner's ``search_state``; ``None`` if it draws from none."""
