@@ -11,7 +11,9 @@ env) is an :class:`ActionSequenceEvaluator`, the planner asks it, and only it, f
   propagation is deterministic),
 * which entries of the input describe the initial state (:attr:`~ActionSequenceEvaluator.state_keys`),
 * the returns of a batch of action sequences (:meth:`~ActionSequenceEvaluator.evaluate_action_sequences`),
-  in a given planning precision, with the rewards of the transforms stacked on top of it.
+  in a given planning precision, with the rewards of the transforms stacked on top of it,
+* the state of its own generator, if scoring draws from one (:meth:`~ActionSequenceEvaluator.generator_state`),
+  so that a planner's ``search_state`` holds everything its next call depends on.
 
 Any other batch-unlocked TorchRL env is planned over with TorchRL's generic ``env.rollout``
 (:func:`rollout_returns`). This is the role of mbrl-lib's ``ModelEnv.evaluate_action_sequences``:
