@@ -8,7 +8,9 @@ os.environ.setdefault("WANDB_SILENT", "true")
 import pytest
 import torch
 
-torch.set_num_threads(2)
+# two threads, or one in each of pytest-xdist's workers (``-n 2``: two workers share the two cores)
+SUITE_THREADS = 1 if os.environ.get("PYTEST_XDIST_WORKER") else 2
+torch.set_num_threads(SUITE_THREADS)
 
 
 @pytest.fixture(autouse=True)
@@ -16,9 +18,9 @@ def _seed():
     torch.manual_seed(0)
     yield
     # a softae command run in-process sets its own thread count (--threads): the next test gets the
-    # suite's two back (after a change from 2 to 1 thread, oneDNN's convolutions on pre-packed and
-    # on plain weights no longer agree bit for bit, which test_packed_conv_weights_match checks)
-    torch.set_num_threads(2)
+    # suite's back (after a change of the thread count, oneDNN's convolutions on pre-packed and on
+    # plain weights no longer agree bit for bit, which test_packed_conv_weights_match checks)
+    torch.set_num_threads(SUITE_THREADS)
 
 
 def render_or_skip(env):

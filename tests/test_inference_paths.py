@@ -148,7 +148,8 @@ def test_packed_conv_weights_match(monkeypatch):
     """Weights pre-packed into oneDNN's layout once give the plain-weight convolutions' results, in
     fp32 and bf16, fused or not, at row counts other than the one they were packed for (bit for
     bit where both run the same oneDNN op; the unfused plain path runs ``F.conv2d``, whose kernel
-    for a single row rounds differently); an optimizer step re-packs them (no stale weights)."""
+    for a single row rounds differently, and so does oneDNN's one-thread kernel for a single row on
+    plain weights: 1.5e-8 apart on the AVX2 EPYC); an optimizer step re-packs them (no stale weights)."""
     torch.manual_seed(0)
     # one exact pack (200 rows), then buckets: 7, 1 and 300 rows run on weights packed for 8, 2, 512
     monkeypatch.setattr(engine_network, "_EXACT_PACKS", 1)
@@ -165,8 +166,8 @@ def test_packed_conv_weights_match(monkeypatch):
                 with monkeypatch.context() as m:
                     m.setattr(engine_network, "_PACK_CONV_WEIGHT", None)
                     plain = [model.network(x, dtype=dtype)[0] for x in xs]
-            for a, b in zip(packed, plain):
-                if path == "conv-fused":
+            for x, a, b in zip(xs, packed, plain):
+                if path == "conv-fused" and not (len(x) == 1 and torch.get_num_threads() == 1):
                     assert torch.equal(a, b)
                 else:
                     torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
