@@ -18,8 +18,8 @@ def _seed():
     torch.manual_seed(0)
     yield
     # a softae command run in-process sets its own thread count (--threads): the next test gets the
-    # suite's back (after a change of the thread count, oneDNN's convolutions on pre-packed and on
-    # plain weights no longer agree bit for bit, which test_packed_conv_weights_match checks)
+    # suite's back (oneDNN's kernels depend on it: at one thread a single row rounds differently on
+    # pre-packed and on plain weights, which test_packed_conv_weights_match allows only there)
     torch.set_num_threads(SUITE_THREADS)
 
 

@@ -149,7 +149,7 @@ def test_packed_conv_weights_match(monkeypatch):
     fp32 and bf16, fused or not, at row counts other than the one they were packed for (bit for
     bit where both run the same oneDNN op; the unfused plain path runs ``F.conv2d``, whose kernel
     for a single row rounds differently, and so does oneDNN's one-thread kernel for a single row on
-    plain weights: 1.5e-8 apart on the AVX2 EPYC); an optimizer step re-packs them (no stale weights)."""
+    plain weights); an optimizer step re-packs them (no stale weights)."""
     torch.manual_seed(0)
     # one exact pack (200 rows), then buckets: 7, 1 and 300 rows run on weights packed for 8, 2, 512
     monkeypatch.setattr(engine_network, "_EXACT_PACKS", 1)

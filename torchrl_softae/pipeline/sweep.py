@@ -336,7 +336,7 @@ def _task_events(on_episode):
 
     def on_task(name, result, kept):
         on_episode({"episode": result["episodes_explored"] - 1, f"task_return/{name}": result["mean_return"],
-                    "task_evaluated": 1, "kept": int(kept), "attempts": 1 if kept else result.get("attempts", 1)})
+                    "task_evaluated": 1, "kept": int(kept), "attempts": result.get("attempts", 1)})
     return on_task
 
 
