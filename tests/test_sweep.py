@@ -167,6 +167,13 @@ def test_local_processes_sweep_resumes_a_killed_trial(tmp_path, capsys, monkeypa
     _check_progress(out)
     monkeypatch.delenv("SOFTAE_EXIT_AFTER_EPISODE")
     _check_sweep(tmp_path, root, capsys)
+    # an evaluate block edited since the runs were evaluated leaves them to evaluate again
+    from torchrl_softae.pipeline.sweep import expand, load_sweep, trial_status
+
+    for edit in ("episodes: 2,", "episodes: 1, propagation: sample,"):
+        edited = _write(tmp_path, TINY.replace("episodes: 1,", edit), name="edited.yaml")
+        assert {trial_status(t) for t in expand(load_sweep(edited), root)[0]} == {"partial 3/3"}, edit
+    assert {trial_status(t) for t in expand(load_sweep(f), root)[0]} == {"finished"}
 
     # a run that died and was not resumed is reported as unfinished, never averaged
     unfinished = root / "Pendulum-v1" / "random-s7"

@@ -263,9 +263,14 @@ def _evaluated(trial: Trial) -> bool:
         return True
     eval_dir = trial.run_dir / "eval"
     tasks = trial.evaluate["task_names"]
+    # what the evaluate block asks of each saved result (the planner settings are in its file name):
+    # a block edited since (more episodes, another propagation) is not finished
+    wanted = {"episodes_explored": trial.episodes, "episodes": int(trial.evaluate.get("episodes", 3)),
+              "propagation": trial.evaluate.get("propagation", "mean")}
     for task in tasks:
         f = eval_dir / eval_file_name(task, _planner_overrides(trial.evaluate))
-        if not f.exists() or json.loads(f.read_text()).get("episodes_explored") != trial.episodes:
+        saved = json.loads(f.read_text()) if f.exists() else {}
+        if any(saved.get(k) != v for k, v in wanted.items()):
             return False
     if trial.evaluate.get("references"):
         f = eval_dir / REFERENCES_FILE
