@@ -359,12 +359,36 @@ def test_sequential_episodes_go_on_after_those_a_killed_attempt_finished(pets_ru
                          checkpoint=TaskCheckpoint(path, key))
     saved = torch.load(path, weights_only=True)
     assert json.loads(saved["episodes"])["returns"] == straight["returns"]
-    first = {k: v[:1] for k, v in straight.items()}
+    first = {k: v[:1] for k, v in json.loads(saved["episodes"]).items()}
     torch.save({**saved, "episodes": json.dumps({**first, "returns": [123.0]})}, path)
     resumed = zero_shot(cfg, model, task, episodes=2, seed=2, progress=False, batched=False,
                         checkpoint=TaskCheckpoint(path, key))
     assert resumed["returns"] == [123.0, *straight["returns"][1:]]
     assert resumed["initial_states"] == straight["initial_states"]
+
+
+def test_episodes_read_back_advance_the_progress_bar_by_their_steps(tmp_path):
+    """A resumed sequential evaluation's progress bar starts at the steps of the episodes it read
+    back (the policy counts only the steps it plans)."""
+    import io
+
+    from outside_envs import short_swingup
+    from torchrl.envs.utils import RandomPolicy
+    from tqdm import tqdm
+    from torchrl_softae.pipeline.evaluate import TaskCheckpoint, task_rollouts
+
+    task, path, key = short_swingup(), tmp_path / "task.partial.pt", {"what": "this test"}
+
+    def rollouts(bar=None):
+        return task_rollouts("Pendulum-v1", task, 2, 0, lambda real, s, t: RandomPolicy(real.action_spec),
+                             checkpoint=TaskCheckpoint(path, key), bar=bar)
+
+    straight = rollouts()
+    saved = torch.load(path, weights_only=True)
+    assert json.loads(saved["episodes"])["steps"] == [task.horizon, task.horizon]
+    torch.save({**saved, "episodes": json.dumps({k: v[:1] for k, v in json.loads(saved["episodes"]).items()})}, path)
+    bar = tqdm(total=2 * task.horizon, file=io.StringIO())
+    assert rollouts(bar) == straight and bar.n == task.horizon
 
 
 def test_a_run_from_before_a_new_config_field_resumes(tmp_path):

@@ -49,7 +49,7 @@ def load_run(run_dir: str | Path) -> tuple[ExploreConfig, EnsembleWorldModel, di
 
 
 def task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for, keep_trajectories: bool = False,
-                  checkpoint: TaskCheckpoint | None = None) -> dict:
+                  checkpoint: TaskCheckpoint | None = None, bar=None) -> dict:
     """Roll out ``policy_for(env, episode_seed, episode_task)`` for ``episodes`` seeded episodes of
     ``task`` on the real env with the task's reward: ``{"returns": [...], "metrics": [{...}, ...],
     "initial_states": [...]}``, and with ``keep_trajectories`` the episodes' ``(T,)`` rollout
@@ -59,15 +59,18 @@ def task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for, ke
     references see the same initial states (and, for a task family, the same targets).
 
     ``checkpoint``: saves the episodes done after each one, and goes on after those an earlier,
-    killed attempt saved (each episode is seeded on its own, so the rest are the same)."""
+    killed attempt saved (each episode is seeded on its own, so the rest are the same). ``bar``: a
+    progress bar counting steps, advanced by the episodes read back (the policy counts the rest)."""
     real = make_real_env(get_env_entry(env), task.horizon)
     reward = TaskReward(task)
     real.append_transform(reward)
-    returns, metrics, starts, trajectories = [], [], [], []
+    returns, metrics, starts, lengths, trajectories = [], [], [], [], []
     saved = checkpoint.saved if checkpoint is not None and not keep_trajectories else None
     done = json.loads(saved["episodes"]) if saved is not None and saved.get("kind") == "episodes" else {}
-    for key, into in (("returns", returns), ("metrics", metrics), ("initial_states", starts)):
+    for key, into in (("returns", returns), ("metrics", metrics), ("initial_states", starts), ("steps", lengths)):
         into.extend(done.get(key, [])[:episodes])
+    if bar is not None:
+        bar.update(sum(lengths))
     for i in range(len(returns), episodes):
         s = episode_seed(seed, i)
         seed_everything(s)
@@ -80,6 +83,7 @@ def task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for, ke
         starts.append(traj[0]["observation"].tolist())
         returns.append(float(traj["next", "reward"].sum()))
         metrics.append(episode_task.metrics(traj))
+        lengths.append(len(traj))
         if episode_task is not task:
             metrics[-1].update({f"target_{k}": v for k, v in episode_task.params.items()})
         if keep_trajectories:
@@ -87,7 +91,7 @@ def task_rollouts(env: str, task: Task, episodes: int, seed: int, policy_for, ke
         elif checkpoint is not None:
             # as JSON, which keeps the numbers exactly and is what the result is written as
             checkpoint.save({"kind": "episodes", "episodes": json.dumps(
-                {"returns": returns, "metrics": metrics, "initial_states": starts}, default=float)})
+                {"returns": returns, "metrics": metrics, "initial_states": starts, "steps": lengths}, default=float)})
     real.close()
     res = {"returns": returns, "metrics": metrics, "initial_states": starts}
     return res | {"trajectories": trajectories} if keep_trajectories else res
@@ -156,7 +160,7 @@ def zero_shot(
     if batched and episodes > 1 and task.instantiate is None and task.advance is None:
         res = _task_rollouts_batched(cfg.env, task, episodes, seed, planner, checkpoint, bar)
     else:
-        res = task_rollouts(cfg.env, task, episodes, seed, planner, checkpoint=checkpoint)
+        res = task_rollouts(cfg.env, task, episodes, seed, planner, checkpoint=checkpoint, bar=bar)
     if bar is not None:
         bar.close()
     return res
