@@ -109,6 +109,12 @@ class _Advancing:
         return self.policy(tensordict)
 
 
+def planner_overrides(planner: dict | None) -> list[str] | None:
+    """Planner settings ``{key: value}`` (a sweep's ``evaluate: {planner: ...}``) as the overrides
+    :func:`evaluate_run` takes (``["planner.key=value", ...]``), or ``None`` for none."""
+    return [f"planner.{k}={v}" for k, v in (planner or {}).items()] or None
+
+
 def eval_file_name(task: str, planner_overrides: list[str] | None = None) -> str:
     """``TASK.json``, or ``TASK@key=value,....json`` for an evaluation planned with overrides."""
     suffix = ("@" + ",".join(o.split(".", 1)[1] for o in planner_overrides)) if planner_overrides else ""

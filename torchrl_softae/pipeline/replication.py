@@ -118,7 +118,7 @@ def run_budgets(trial, cfg, on_episode=None, on_task=None) -> list[dict]:
     evaluated any more (its model is gone): one clear error. A task a killed process evaluated for
     the budget's model is kept (:func:`~torchrl_softae.pipeline.evaluate.evaluate_run`'s ``resume``),
     and its seconds count in the record's. ``on_task``: as ``evaluate_run``'s."""
-    from torchrl_softae.pipeline.evaluate import evaluate_run
+    from torchrl_softae.pipeline.evaluate import evaluate_run, planner_overrides
     from torchrl_softae.pipeline.explore import explore
     from torchrl_softae.pipeline.runs import RunDir, atomic_write_text
 
@@ -132,7 +132,6 @@ def run_budgets(trial, cfg, on_episode=None, on_task=None) -> list[dict]:
         cfg_b = dataclasses.replace(cfg, episodes=budget)
         history = explore(cfg_b, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
         t0, cpu0 = time.perf_counter(), time.process_time()
-        overrides = [f"planner.{k}={v}" for k, v in (ev.get("planner") or {}).items()] or None
         earlier = {"seconds": 0.0, "cpu_seconds": 0.0}  # spent on these tasks by earlier, killed processes
 
         def count_earlier(name, result, was_kept, earlier=earlier):
@@ -143,8 +142,8 @@ def run_budgets(trial, cfg, on_episode=None, on_task=None) -> list[dict]:
 
         res = evaluate_run(trial.run_dir, tasks=ev["task_names"], episodes=int(ev.get("episodes", 3)),
                            task_episodes=block["task_episodes"], propagation=ev.get("propagation", "mean"),
-                           progress=False, planner_overrides=overrides, references=bool(ev.get("references")),
-                           resume=True, on_task=count_earlier)
+                           progress=False, planner_overrides=planner_overrides(ev.get("planner")),
+                           references=bool(ev.get("references")), resume=True, on_task=count_earlier)
         accuracy = {k: v for k, v in res.items() if k.startswith("heldout_")}
         tasks = {name: {**r, "planner_horizon": r["planner"]["horizon"]} for name, r in res["tasks"].items()}
         histogram = coverage_histogram(cfg_b, trial.run_dir)

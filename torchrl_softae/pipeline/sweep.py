@@ -252,12 +252,8 @@ def trial_status(trial: Trial) -> str:
     return f"partial {done}/{trial.episodes}" if done else "new"
 
 
-def _planner_overrides(evaluate: dict) -> list[str] | None:
-    return [f"planner.{k}={v}" for k, v in (evaluate.get("planner") or {}).items()] or None
-
-
 def _evaluated(trial: Trial) -> bool:
-    from torchrl_softae.pipeline.evaluate import REFERENCES_FILE, eval_file_name
+    from torchrl_softae.pipeline.evaluate import REFERENCES_FILE, eval_file_name, planner_overrides
 
     if not trial.evaluate:
         return True
@@ -268,7 +264,7 @@ def _evaluated(trial: Trial) -> bool:
     wanted = {"episodes_explored": trial.episodes, "episodes": int(trial.evaluate.get("episodes", 3)),
               "propagation": trial.evaluate.get("propagation", "mean")}
     for task in tasks:
-        f = eval_dir / eval_file_name(task, _planner_overrides(trial.evaluate))
+        f = eval_dir / eval_file_name(task, planner_overrides(trial.evaluate.get("planner")))
         saved = json.loads(f.read_text()) if f.exists() else {}
         if any(saved.get(k) != v for k, v in wanted.items()):
             return False
@@ -302,7 +298,7 @@ def run_trial(trial: Trial, threads: int, on_episode=None) -> dict:
 
 
 def _run_trial(trial: Trial, cfg, on_episode) -> dict:
-    from torchrl_softae.pipeline.evaluate import evaluate_run
+    from torchrl_softae.pipeline.evaluate import evaluate_run, planner_overrides
     from torchrl_softae.pipeline.explore import explore
 
     if trial.replication:  # the last budget is the run's episodes: nothing is left to explore
@@ -315,8 +311,8 @@ def _run_trial(trial: Trial, cfg, on_episode) -> dict:
         # a task a killed trial already evaluated for this model is kept (``resume``)
         res = evaluate_run(trial.run_dir, tasks=ev.get("tasks"), episodes=int(ev.get("episodes", 3)),
                            propagation=ev.get("propagation", "mean"), progress=False,
-                           planner_overrides=_planner_overrides(ev), references=bool(ev.get("references")),
-                           resume=True, on_task=_task_events(on_episode))
+                           planner_overrides=planner_overrides(ev.get("planner")),
+                           references=bool(ev.get("references")), resume=True, on_task=_task_events(on_episode))
         row.update({f"return/{k}": v["mean_return"] for k, v in res["tasks"].items()})
         if on_episode is not None:
             on_episode({**history[-1], **row, "evaluated": 1})
