@@ -49,6 +49,7 @@ Each claim's comparison, test and thresholds are fixed here before the runs they
 from __future__ import annotations
 
 import argparse
+import collections
 import functools
 import json
 from pathlib import Path
@@ -744,6 +745,35 @@ def scorecard() -> list[dict]:
     return sorted(rows, key=lambda r: int(r["id"][1:]))
 
 
+def judged_records() -> dict[str, list[dict]]:
+    """Every record the rows judge or count, by the env's label."""
+    groups = {"SoftArm-v1 (58D)": arm_results(), "SoftArm136-v1": arm_results(directory=ARM136),
+              "SoPrA-v0 (twin)": sopra_results(), **{env: locomotion_results(env) for env in LOCOMOTION}}
+    return {label: [r for rs in res.values() for r in rs] for label, res in groups.items()}
+
+
+def arithmetic() -> list[str]:
+    """Where the judged records were evaluated and in which arithmetic, as markdown lines: the
+    paper states neither, and ``precision: auto`` resolves by machine (bf16 matmuls only where the
+    CPU has them natively and they measure faster), so a row may mix bf16 and fp32 seeds."""
+    lines = ["Machines and arithmetic (the paper states neither): `precision: auto` computes the network's matmuls "
+             "in bf16 where the CPU has native bf16 and it measures faster, in fp32 elsewhere, so seeds run on "
+             "different machines may differ in arithmetic as well as in speed. The judged records, by the machine "
+             "that evaluated them, with their counts:", "",
+             "| env | records | evaluated on | exploration trained in | planner.precision |", "|---|---|---|---|---|"]
+    for label, records in judged_records().items():
+        if not records:
+            continue
+        machines = collections.Counter(machine_label(r) for r in records)
+        trained = collections.Counter(
+            "/".join(sorted({str(h.get("train_precision", NOT_RECORDED)) for h in r["history"]})) for r in records)
+        planned = sorted({str(r["config"]["planner"].get("precision", NOT_RECORDED)) for r in records})
+        cells = [label, len(records), "; ".join(f"{m}: {n}" for m, n in sorted(machines.items())),
+                 "; ".join(f"{t}: {n}" for t, n in sorted(trained.items())), ", ".join(planned)]
+        lines.append("| " + " | ".join(map(str, cells)) + " |")
+    return lines
+
+
 def markdown(rows: list[dict]) -> str:
     lines = ["# Replication scorecard", "",
              "The paper's 18 claims, each with a verdict decided by the rules in `benchmarks/scorecard.py`, "
@@ -767,7 +797,8 @@ def markdown(rows: list[dict]) -> str:
         lines.append("| " + " | ".join(str(c).replace("|", "/") for c in cells) + " |")
     counts = {v: sum(r["verdict"] == v for r in rows) for v in ("holds", "partly", "fails", "untested")}
     lines += ["", "Verdicts: " + ", ".join(f"{n} {v}" for v, n in counts.items()) + f" (of {len(rows)}).",
-              "", f"Settings of the judged rows: the arm, {PAPER_SETTINGS}; SoPrA, {SOPRA_SETTINGS}."]
+              "", f"Settings of the judged rows: the arm, {PAPER_SETTINGS}; SoPrA, {SOPRA_SETTINGS}.",
+              "", *arithmetic()]
     return "\n".join(lines) + "\n"
 
 
