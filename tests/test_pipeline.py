@@ -345,6 +345,19 @@ def test_a_task_killed_mid_episode_goes_on_from_its_last_progress_save_to_the_sa
     assert not partial.exists()
 
 
+@pytest.mark.parametrize("propagation", ["mean", "sample"])
+def test_one_episode_as_a_batch_of_one_is_the_episode_alone(pets_run, propagation):
+    """A single episode runs as a batch of one (so its progress saves go on mid-episode), with the
+    returns, metrics and initial state of the same episode run alone."""
+    from outside_envs import short_swingup
+    from torchrl_softae.pipeline.evaluate import load_run, zero_shot
+
+    cfg, model, _ = load_run(pets_run)
+    alone, batch = (zero_shot(cfg, model, short_swingup(), episodes=1, seed=3, propagation=propagation,
+                              progress=False, batched=batched) for batched in (False, True))
+    assert batch == alone
+
+
 def test_sequential_episodes_go_on_after_those_a_killed_attempt_finished(pets_run, tmp_path):
     """One episode after another (a task family, or ``batched=False``): each finished episode is
     saved, and a resumed attempt goes on after them (a sentinel return proves the first is read

@@ -148,7 +148,7 @@ def zero_shot(
     ``batched``: the episodes run side by side, one env each, and the planner plans for all of
     their states in one call per step (a task family with a target per episode runs one episode
     after another). Initial states are the same either way (seeded per episode); the planner's
-    random draws differ. Returns ``{"returns": [...], "metrics": [{...}, ...]}``, one entry per
+    random draws differ, except for a single episode, which plans alike as a batch of one. Returns ``{"returns": [...], "metrics": [{...}, ...]}``, one entry per
     episode; deterministic for a given seed.
 
     ``checkpoint``: the task's progress is saved there (:class:`TaskCheckpoint`), and what an
@@ -163,7 +163,9 @@ def zero_shot(
     def planner(real, s, episode_task):
         return task_policy(cfg, model, episode_task, real.action_spec, propagation, seed=s, progress=bar)
 
-    if batched and episodes > 1 and task.instantiate is None and task.advance is None:
+    # one episode too: a batch of one plans and steps as the episode alone does, and its progress
+    # saves go on mid-episode
+    if batched and task.instantiate is None and task.advance is None:
         res = _task_rollouts_batched(cfg.env, task, episodes, seed, planner, checkpoint, bar)
     else:
         res = task_rollouts(cfg.env, task, episodes, seed, planner, checkpoint=checkpoint, bar=bar)
