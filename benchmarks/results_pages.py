@@ -96,8 +96,8 @@ def _scorecard(_: str) -> str:
 
 
 def _cost(env: str) -> str:
-    """Per method and budget, the hours per run of every run whose records reach that budget (its
-    last): the mean and range over the runs, CPU time where every record carries it."""
+    """Per method, budget and machine, the hours per run of every run whose records reach that
+    budget (its last): the mean and range over the runs, CPU time where every record carries it."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import scorecard
 
@@ -108,10 +108,11 @@ def _cost(env: str) -> str:
         r = json.loads(path.read_text())
         if "seconds" in r and r["budget"] > last.get((r["method"], r["seed"]), {}).get("budget", 0):
             last[r["method"], r["seed"]] = r
-    groups: dict[tuple, list[dict]] = {}  # in the order of softae report's tables
+    # in the order of softae report's tables; a machine per row, since hours differ by machine
+    groups: dict[tuple, list[dict]] = {}
     rank = {m: i for i, m in enumerate(label_order(m for m, _ in last))}
     for (method, seed), r in sorted(last.items(), key=lambda kv: (rank[kv[0][0]], kv[0][1])):
-        groups.setdefault((method, r["budget"]), []).append(r)
+        groups.setdefault((method, r["budget"], scorecard.machine_label(r)), []).append(r)
 
     def spread(costs, total, evaluate):
         values = [c[total] for c in costs]
@@ -122,14 +123,11 @@ def _cost(env: str) -> str:
         return f"No records of {env} yet."
     out = ["| method | runs (seeds) | episodes | CPU-hours per run, mean (range) | wall-clock hours per run, "
            "mean (range) | machine |", "|---|---|---|---|---|---|"]
-    for (method, budget), runs in groups.items():
+    for (method, budget, machine), runs in groups.items():
         costs = [scorecard.run_cost(env, method, r["seed"], budget) for r in runs]
-        machines = [scorecard.machine_label(r) for r in runs]
-        machines = sorted(set(machines)) if len(set(machines)) == 1 else [
-            f"{m} ({machines.count(m)})" for m in sorted(set(machines))]
         cells = [method, f"{len(runs)} ({', '.join(str(r['seed']) for r in runs)})", budget,
                  spread(costs, "hours", "evaluate") if all(c["cpu"] for c in costs) else "not recorded",
-                 spread(costs, "wall", "wall_evaluate"), "; ".join(machines)]
+                 spread(costs, "wall", "wall_evaluate"), machine]
         out.append("| " + " | ".join(map(str, cells)) + " |")
     return "\n".join(out)
 
