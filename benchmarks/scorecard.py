@@ -260,7 +260,8 @@ def machine_label(record: dict) -> str:
     m = record.get("machine") or {}
     if "cpu" not in m:
         return NOT_RECORDED
-    amx = ", AMX" if "amx_bf16" in m.get("isa", ()) else ""
+    isa = m.get("isa") or []  # older records did not list the instruction sets: say so, not "no AMX"
+    amx = ", AMX" if "amx_bf16" in isa else "" if isa else ", instruction sets not recorded"
     return f"{m['cpu']}{amx}, {m['threads']} thread{'s' if m['threads'] > 1 else ''}"
 
 
