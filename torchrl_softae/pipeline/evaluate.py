@@ -148,8 +148,9 @@ def zero_shot(
     ``batched``: the episodes run side by side, one env each, and the planner plans for all of
     their states in one call per step (a task family with a target per episode runs one episode
     after another). Initial states are the same either way (seeded per episode); the planner's
-    random draws differ, except for a single episode, which plans alike as a batch of one. Returns ``{"returns": [...], "metrics": [{...}, ...]}``, one entry per
-    episode; deterministic for a given seed.
+    random draws differ, except for a single episode, which plans alike as a batch of one. Returns
+    ``{"returns": [...], "metrics": [{...}, ...]}``, one entry per episode; deterministic for a
+    given seed.
 
     ``checkpoint``: the task's progress is saved there (:class:`TaskCheckpoint`), and what an
     earlier, killed attempt saved is continued: the same returns as one uninterrupted call.
