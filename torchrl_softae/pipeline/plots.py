@@ -415,12 +415,15 @@ def plot_budgets(records: list[dict], out_dir: str | Path) -> list[Path]:
                 means = {}  # budget -> every seed's value there
                 for seed, per_budget in sorted(runs[label].items()):
                     values = {b: v for b, r in sorted(per_budget.items()) if (v := _value(value, r)) is not None}
-                    ax.plot(list(values), list(values.values()), "-", color=color, lw=0.8, alpha=0.35)
+                    # a marker too: a seed evaluated at one budget so far is a point, not a line
+                    ax.plot(list(values), list(values.values()), ".-", color=color, lw=0.8, ms=3, alpha=0.35)
                     for b, v in values.items():
                         means.setdefault(b, []).append(v)
                 budgets = sorted(means)
+                counts = sorted({len(means[b]) for b in budgets}) or [0]  # seeds per budget can differ
+                n = str(counts[0]) if len(counts) == 1 else f"{counts[0]}-{counts[-1]}"
                 ax.plot(budgets, [np.mean(means[b]) for b in budgets], "o-", color=color, lw=2, ms=4,
-                        label=f"{label} (n={max(len(v) for v in means.values()) if means else 0})")
+                        label=f"{label} (n={n})")
             ax.set_title(name, fontsize=9)
             ax.set_xlabel("exploration episodes")
             if "MSE" in name:
