@@ -397,7 +397,7 @@ def evaluate_run(
         settings = {"propagation": propagation, "beta": cfg.beta, "seed": seed, "episodes": n,
                     "planner": dict(vars(cfg.planner)), "episodes_explored": out["episodes_explored"],
                     "success_metric": task.success_metric, **identity}
-        res = _saved_result(path, settings) if resume else None
+        res = saved_result(path, settings) if resume else None
         kept = res is not None
         checkpoint = TaskCheckpoint(path.with_suffix(".partial.pt"), settings, resume and not kept, checkpoint_seconds)
         if not kept:
@@ -428,9 +428,9 @@ def evaluation_identity(state: dict) -> dict:
     return {"model_sha256": digest.hexdigest(), "code": code_identity(), "machine": machine()}
 
 
-def _saved_result(path: Path, settings: dict) -> dict | None:
-    """The result saved at ``path`` if it was computed with ``settings`` (as JSON reads them back),
-    else ``None``."""
+def saved_result(path: Path, settings: dict) -> dict | None:
+    """The result saved at ``path`` if it was computed with ``settings`` (as JSON reads them back;
+    any subset of a result's settings), else ``None``."""
     if not path.exists():
         return None
     try:

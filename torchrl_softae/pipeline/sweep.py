@@ -253,7 +253,7 @@ def trial_status(trial: Trial) -> str:
 
 
 def _evaluated(trial: Trial) -> bool:
-    from torchrl_softae.pipeline.evaluate import REFERENCES_FILE, eval_file_name, planner_overrides
+    from torchrl_softae.pipeline.evaluate import REFERENCES_FILE, eval_file_name, planner_overrides, saved_result
 
     if not trial.evaluate:
         return True
@@ -263,11 +263,9 @@ def _evaluated(trial: Trial) -> bool:
     # a block edited since (more episodes, another propagation) is not finished
     wanted = {"episodes_explored": trial.episodes, "episodes": int(trial.evaluate.get("episodes", 3)),
               "propagation": trial.evaluate.get("propagation", "mean")}
-    for task in tasks:
-        f = eval_dir / eval_file_name(task, planner_overrides(trial.evaluate.get("planner")))
-        saved = json.loads(f.read_text()) if f.exists() else {}
-        if any(saved.get(k) != v for k, v in wanted.items()):
-            return False
+    overrides = planner_overrides(trial.evaluate.get("planner"))
+    if any(saved_result(eval_dir / eval_file_name(task, overrides), wanted) is None for task in tasks):
+        return False
     if trial.evaluate.get("references"):
         f = eval_dir / REFERENCES_FILE
         refs = json.loads(f.read_text()) if f.exists() else {}
