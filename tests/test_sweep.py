@@ -413,7 +413,7 @@ REPLICATION = TINY.replace("evaluate: {tasks: [swingup], episodes: 1, planner: {
              "replication: {budgets: [1, 3], results: RESULTS, task_episodes: {spin: 2}}")
 
 
-def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(tmp_path, capsys):
+def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(tmp_path, capsys, monkeypatch):
     """The sweep's replication block: each run is evaluated at each budget, one self-contained
     record per (run, budget); a rerun does no work; ``softae report RESULTS`` tables each budget."""
     results = tmp_path / "results" / "Pendulum-v1"
@@ -466,6 +466,28 @@ def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(
     assert swingup["episodes_explored"] == 3
     (evals / "swingup@horizon=2.json").write_text(json.dumps({**swingup, "returns": [7.0], "mean_return": 7.0,
                                                                "cpu_seconds": 1000.0}))
+    # and killed again right after spin's first progress save (a save every step, then the process
+    # stops): the partial's 500 CPU seconds stand for what a long killed attempt spent
+    from torchrl_softae.pipeline.evaluate import TaskCheckpoint
+    from torchrl_softae.pipeline.sweep import expand, load_sweep, run_trial
+
+    class Killed(Exception):
+        pass
+
+    def save_then_die(self, progress, save=TaskCheckpoint.save):
+        save(self, progress)
+        raise Killed
+
+    trial = next(t for t in expand(load_sweep(f), root)[0] if t.name == "Pendulum-v1/softae-b2-s1")
+    threads = torch.get_num_threads()
+    with monkeypatch.context() as m:
+        m.setattr(TaskCheckpoint, "due", lambda self: True)
+        m.setattr(TaskCheckpoint, "save", save_then_die)
+        with pytest.raises(Killed):
+            run_trial(trial, threads=1)  # the sweep's trial threads: the machine is in the progress key
+    torch.set_num_threads(threads)
+    partial = evals / "spin@horizon=2.partial.pt"
+    torch.save({**torch.load(partial, weights_only=True), "cpu_seconds": 500.0}, partial)
     capsys.readouterr()
     assert main(["sweep", str(f), "--root", str(root), "--jobs", "1"]) == 0
     out = capsys.readouterr().out
@@ -473,10 +495,14 @@ def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(
     assert "trial Pendulum-v1/softae-b2-s1: zero-shot swingup with the model of episode 3: mean return 7 " \
            "(kept from an earlier attempt)" in out, out
     assert "trial Pendulum-v1/softae-b2-s1: zero-shot spin with the model of episode 3: mean return" in out
+    assert "(went on where a killed attempt stopped: 2 attempts)" in out, out
     again = json.loads((results / "softae-b2-s1-ep3.json").read_text())
-    assert again["tasks"]["swingup"]["returns"] == [7.0] and again["tasks"]["spin"] == late["tasks"]["spin"] | {
-        k: again["tasks"]["spin"][k] for k in ("seconds", "cpu_seconds")}
-    assert again["cpu_seconds"]["evaluate"] > 1000.0
+    spin = again["tasks"]["spin"]  # the same returns as the uninterrupted evaluation
+    assert spin["attempts"] == 2 and spin["earlier_cpu_seconds"] == 500.0 and not partial.exists()
+    assert again["tasks"]["swingup"]["returns"] == [7.0] and spin == late["tasks"]["spin"] | {
+        k: spin[k] for k in ("seconds", "cpu_seconds", "attempts", "earlier_seconds", "earlier_cpu_seconds")}
+    # the record's evaluation counts the kept task wholly and the resumed one's killed part
+    assert again["cpu_seconds"]["evaluate"] > 1500.0
     (results / "softae-b2-s1-ep3.json").write_text(json.dumps(late))  # the real record again, for the report
     assert main(["sweep", str(f), "--root", str(root)]) == 0
     assert "4 finished, 0 to run" in capsys.readouterr().out
