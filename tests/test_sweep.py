@@ -83,17 +83,30 @@ def _check_sweep(tmp_path, root, capsys, env="Pendulum-v1", tasks=("swingup",)):
     killed = Path(root) / env / "softae-b2-s1"
     assert (killed / ".injected_exit").exists()  # it really died after episode 2
     # the same run, uninterrupted, in this process with the trial's single thread
+    from torchrl_softae.pipeline import sweep
     from torchrl_softae.pipeline.sweep import expand, load_sweep, run_trial
 
     trials, _ = expand(load_sweep(tmp_path / "sweep.yaml"), tmp_path / "reference")
     ref = next(t for t in trials if t.run_dir.name == "softae-b2-s1")
     threads = torch.get_num_threads()
+    rows = []
     try:
-        run_trial(ref, threads=1)
+        with pytest.MonkeyPatch.context() as m:  # a line per step rather than every 5 minutes
+            m.setattr(sweep, "TASK_PROGRESS_SECONDS", 0.0)
+            run_trial(ref, threads=1, on_episode=rows.append)
     finally:
         torch.set_num_threads(threads)
     a, b = _model(killed), _model(ref.run_dir)
     assert all(torch.equal(a[k], b[k]) for k in a)  # bit for bit
+    # a task in evaluation reports its steps as they go, with the time left at its pace
+    steps = [r for r in rows if f"task_steps/{tasks[0]}" in r]
+    done = [r[f"task_steps/{tasks[0]}"] for r in steps]
+    total = steps[0]["task_total_steps"]
+    assert done == list(range(2, done[-1] + 1)) and done[-1] < total  # one episode: a step at a time
+    assert all(r["episode"] == 2 and r["seconds_left"] > 0 for r in steps)
+    line = sweep.progress_line("T", steps[0], 3)
+    assert line.startswith(f"trial T: zero-shot {tasks[0]} with the model of episode 3: 2/{total} steps (")
+    assert line.endswith(" s left"), line
     # rerunning the finished sweep does no work
     capsys.readouterr()
     assert main(["sweep", str(tmp_path / "sweep.yaml"), "--root", str(root)]) == 0
@@ -466,8 +479,9 @@ def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(
     assert swingup["episodes_explored"] == 3
     (evals / "swingup@horizon=2.json").write_text(json.dumps({**swingup, "returns": [7.0], "mean_return": 7.0,
                                                                "cpu_seconds": 1000.0}))
-    # and killed again right after spin's first progress save (a save every step, then the process
+    # and killed again right after spin's third progress save (a save every step, then the process
     # stops): the partial's 500 CPU seconds stand for what a long killed attempt spent
+    from torchrl_softae.pipeline import sweep
     from torchrl_softae.pipeline.evaluate import TaskCheckpoint
     from torchrl_softae.pipeline.sweep import expand, load_sweep, run_trial
 
@@ -476,16 +490,21 @@ def test_a_replication_sweep_records_every_run_at_every_budget_and_reports_them(
 
     def save_then_die(self, progress, save=TaskCheckpoint.save):
         save(self, progress)
-        raise Killed
+        if self.saves == 3:
+            raise Killed
 
     trial = next(t for t in expand(load_sweep(f), root)[0] if t.name == "Pendulum-v1/softae-b2-s1")
     threads = torch.get_num_threads()
+    rows = []
     with monkeypatch.context() as m:
         m.setattr(TaskCheckpoint, "due", lambda self: True)
         m.setattr(TaskCheckpoint, "save", save_then_die)
+        m.setattr(sweep, "TASK_PROGRESS_SECONDS", 0.0)  # a progress line per step
         with pytest.raises(Killed):
-            run_trial(trial, threads=1)  # the sweep's trial threads: the machine is in the progress key
+            run_trial(trial, threads=1, on_episode=rows.append)  # the sweep's threads: the machine is in the key
     torch.set_num_threads(threads)
+    # spin's two episodes side by side, 2 env steps a step, with the budget-3 model
+    assert [(r["episode"], r["task_steps/spin"]) for r in rows if "task_steps/spin" in r] == [(2, 4), (2, 6)]
     partial = evals / "spin@horizon=2.partial.pt"
     torch.save({**torch.load(partial, weights_only=True), "cpu_seconds": 500.0}, partial)
     capsys.readouterr()

@@ -1,6 +1,7 @@
 """Zero-shot evaluation: the explored model + iCEM solve a task they never saw, on the real env."""
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -142,6 +143,7 @@ def zero_shot(
     progress: bool = True,
     batched: bool = True,
     checkpoint: TaskCheckpoint | None = None,
+    on_steps=None,
 ) -> dict:
     """MPC with the task reward on the learned model, acting on the real env.
 
@@ -154,12 +156,17 @@ def zero_shot(
 
     ``checkpoint``: the task's progress is saved there (:class:`TaskCheckpoint`), and what an
     earlier, killed attempt saved is continued: the same returns as one uninterrupted call.
+    ``on_steps(done, total)``: called as the env steps advance (those read back from a killed
+    attempt at once; ``total``: ``episodes`` x the task's horizon), for progress shown elsewhere
+    than the bar ``progress`` draws.
     """
     bar = None
-    if progress:
+    if progress or on_steps is not None:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=episodes * task.horizon, desc=f"zero-shot {task.name}", unit="step", leave=False)
+        total = episodes * task.horizon
+        bar = _StepCount(total, on_steps, tqdm(total=total, desc=f"zero-shot {task.name}", unit="step",
+                                               leave=False) if progress else None)
 
     def planner(real, s, episode_task):
         return task_policy(cfg, model, episode_task, real.action_spec, propagation, seed=s, progress=bar)
@@ -173,6 +180,25 @@ def zero_shot(
     if bar is not None:
         bar.close()
     return res
+
+
+class _StepCount:
+    """A task's env steps as they advance, for its progress bar and an ``on_steps(done, total)``
+    listener: the planner policy and the rollouts call ``update(n)`` on it as on a tqdm bar."""
+
+    def __init__(self, total: int, on_steps=None, bar=None):
+        self.total, self.done, self.on_steps, self.bar = total, 0, on_steps, bar
+
+    def update(self, n: int) -> None:
+        self.done += n
+        if self.bar is not None:
+            self.bar.update(n)
+        if self.on_steps is not None:
+            self.on_steps(self.done, self.total)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def _task_rollouts_batched(env: str, task: Task, episodes: int, seed: int, policy_for,
@@ -348,7 +374,7 @@ def evaluate_run(
     run_dir: str | Path, tasks: list[str] | None = None, episodes: int = 3, seed: int = 0,
     propagation: str = "mean", progress: bool = True, planner_overrides: list[str] | None = None,
     references: bool = False, task_episodes: dict[str, int] | None = None, resume: bool = False,
-    on_task=None, checkpoint_seconds: float = TASK_CHECKPOINT_SECONDS,
+    on_task=None, checkpoint_seconds: float = TASK_CHECKPOINT_SECONDS, on_steps=None,
 ) -> dict:
     """Zero-shot returns on ``tasks`` (names of the env's tasks or ``module:attr`` references;
     default: all of the env's) and held-out normalized MSE.
@@ -368,7 +394,8 @@ def evaluate_run(
     :class:`TaskCheckpoint`), to the same result. Progress is saved with or without ``resume``.
     ``on_task(name, result, kept)`` is called after each task (``kept``: read back; its
     ``seconds`` and ``cpu_seconds`` are those of the processes that planned it, ``earlier_*``
-    the part of them spent by killed attempts).
+    the part of them spent by killed attempts). ``on_steps(name, done, total)``: as a task's env
+    steps advance (:func:`zero_shot`'s), for progress shown elsewhere than a bar.
     """
     cfg, model, state = load_run(run_dir)
     if planner_overrides:
@@ -402,7 +429,7 @@ def evaluate_run(
         checkpoint = TaskCheckpoint(path.with_suffix(".partial.pt"), settings, resume and not kept, checkpoint_seconds)
         if not kept:
             res = zero_shot(cfg, model, task, episodes=n, seed=seed, propagation=propagation, progress=progress,
-                            checkpoint=checkpoint)
+                            checkpoint=checkpoint, on_steps=None if on_steps is None else functools.partial(on_steps, name))
             res["mean_return"] = float(np.mean(res["returns"]))
             res.update(settings, **checkpoint.provenance())
             run.write_json(path, res)

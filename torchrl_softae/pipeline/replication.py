@@ -20,6 +20,7 @@ seeds, n) and draws them.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import time
 from pathlib import Path
@@ -112,12 +113,13 @@ def check_histogram(histogram: dict, history: list[dict]) -> None:
                          f"{want['coverage']:.4f}: not the same data")
 
 
-def run_budgets(trial, cfg, on_episode=None, on_task=None) -> list[dict]:
+def run_budgets(trial, cfg, on_episode=None, on_task=None, on_steps=None) -> list[dict]:
     """Explore ``trial``'s run to each budget that has no record yet, evaluate it there and write
     its record; returns the run's history (the last budget's). A budget the run already went past cannot be
     evaluated any more (its model is gone): one clear error. A task a killed process evaluated for
     the budget's model is kept (:func:`~torchrl_softae.pipeline.evaluate.evaluate_run`'s ``resume``),
-    and its seconds count in the record's. ``on_task``: as ``evaluate_run``'s."""
+    and its seconds count in the record's. ``on_task``: as ``evaluate_run``'s; ``on_steps``: as
+    ``evaluate_run``'s, called with the budget first."""
     from torchrl_softae.pipeline.evaluate import evaluate_run, planner_overrides
     from torchrl_softae.pipeline.explore import explore
     from torchrl_softae.pipeline.runs import RunDir, atomic_write_text
@@ -143,7 +145,8 @@ def run_budgets(trial, cfg, on_episode=None, on_task=None) -> list[dict]:
         res = evaluate_run(trial.run_dir, tasks=ev["task_names"], episodes=int(ev.get("episodes", 3)),
                            task_episodes=block["task_episodes"], propagation=ev.get("propagation", "mean"),
                            progress=False, planner_overrides=planner_overrides(ev.get("planner")),
-                           references=bool(ev.get("references")), resume=True, on_task=count_earlier)
+                           references=bool(ev.get("references")), resume=True, on_task=count_earlier,
+                           on_steps=None if on_steps is None else functools.partial(on_steps, budget))
         accuracy = {k: v for k, v in res.items() if k.startswith("heldout_")}
         tasks = {name: {**r, "planner_horizon": r["planner"]["horizon"]} for name, r in res["tasks"].items()}
         histogram = coverage_histogram(cfg_b, trial.run_dir)

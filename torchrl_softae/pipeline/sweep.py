@@ -28,6 +28,7 @@ Sweep file (W&B's format, so ``wandb sweep FILE`` works where a W&B server exist
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import itertools
 import json
@@ -300,7 +301,8 @@ def _run_trial(trial: Trial, cfg, on_episode) -> dict:
     from torchrl_softae.pipeline.explore import explore
 
     if trial.replication:  # the last budget is the run's episodes: nothing is left to explore
-        history = replication.run_budgets(trial, cfg, on_episode, on_task=_task_events(on_episode))
+        history = replication.run_budgets(trial, cfg, on_episode, on_task=_task_events(on_episode),
+                                          on_steps=_step_events(on_episode))
     else:
         history = explore(cfg, trial.run_dir, progress=False, echo=None, on_episode=on_episode)
     row = dict(history[-1])
@@ -310,7 +312,8 @@ def _run_trial(trial: Trial, cfg, on_episode) -> dict:
         res = evaluate_run(trial.run_dir, tasks=ev.get("tasks"), episodes=int(ev.get("episodes", 3)),
                            propagation=ev.get("propagation", "mean"), progress=False,
                            planner_overrides=planner_overrides(ev.get("planner")),
-                           references=bool(ev.get("references")), resume=True, on_task=_task_events(on_episode))
+                           references=bool(ev.get("references")), resume=True, on_task=_task_events(on_episode),
+                           on_steps=_step_events(on_episode, history[-1]["episode"] + 1))
         row.update({f"return/{k}": v["mean_return"] for k, v in res["tasks"].items()})
         if on_episode is not None:
             on_episode({**history[-1], **row, "evaluated": 1})
@@ -339,6 +342,38 @@ def _task_events(on_episode):
     return on_task
 
 
+#: seconds between two lines of a task in evaluation: at H = 100 a task runs for an hour on a core
+#: without AMX, and its trial prints nothing else meanwhile
+TASK_PROGRESS_SECONDS = 300.0
+
+
+def _step_events(on_episode, explored: int | None = None):
+    """``on_steps(episodes_explored, name, done, total)`` (``on_steps(name, done, total)`` for the
+    model of ``explored`` episodes) that reports a task's progress as a trial event at most every
+    :data:`TASK_PROGRESS_SECONDS`, with the time left at this attempt's pace (the steps read back
+    from a killed attempt excluded)."""
+    if on_episode is None:
+        return None
+    seen: dict[tuple, list] = {}  # (episodes_explored, task) -> [t0, done at t0, last report]
+
+    def on_steps(explored, name, done, total):
+        now = time.perf_counter()
+        if (explored, name) not in seen:  # the pace is measured from the first count on
+            seen[explored, name] = [now, done, now]
+            return
+        t0, done0, last = seen[explored, name]
+        if now - last < TASK_PROGRESS_SECONDS or done == done0 or done >= total:
+            return
+        seen[explored, name][2] = now
+        on_episode({"episode": explored - 1, f"task_steps/{name}": done, "task_total_steps": total,
+                    "seconds_left": (total - done) * (now - t0) / (done - done0)})
+    return on_steps if explored is None else functools.partial(on_steps, explored)
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.0f} min" if seconds < 5400 else f"{seconds / 3600:.1f} h"
+
+
 # ---------------------------------------------------------------------------- engines
 def _result(row: dict) -> dict:
     """What a trial reports per event (to Tune, or to the local driver): the row's finite numbers."""
@@ -346,14 +381,19 @@ def _result(row: dict) -> dict:
 
 
 def progress_line(name: str, row: dict, episodes: int) -> str:
-    """The sweep's one line per trial event: an explored episode, a task evaluated, the evaluation,
-    the task policies."""
+    """The sweep's one line per trial event: an explored episode, a task's progress and its end, the
+    evaluation, the task policies."""
     if row.get("policies_trained"):
         what = ", ".join(f"{k.split('/', 1)[1]} {v:.3g}" for k, v in row.items() if k.startswith("policy_return/"))
         return f"trial {name}: task policies trained (real returns: {what})"
     if row.get("evaluated"):
         what = ", ".join(f"{k.split('/', 1)[1]} {v:.3g}" for k, v in row.items() if k.startswith("return/"))
         return f"trial {name}: evaluated zero-shot (returns: {what})"
+    steps = [(k.split("/", 1)[1], int(v)) for k, v in row.items() if k.startswith("task_steps/")]
+    if steps:
+        (task, done), total = steps[0], int(row["task_total_steps"])
+        return (f"trial {name}: zero-shot {task} with the model of episode {int(row['episode']) + 1}: "
+                f"{done}/{total} steps ({done / total:.0%}), about {_duration(row['seconds_left'])} left")
     if row.get("task_evaluated"):
         what = ", ".join(f"{k.split('/', 1)[1]} with the model of episode {int(row['episode']) + 1}: mean return "
                          f"{v:.4g}" for k, v in row.items() if k.startswith("task_return/"))
@@ -418,7 +458,8 @@ def run_local(trials: list[Trial], jobs: int, threads: int, max_failures: int, e
 
 
 def _ray_trainable(config: dict) -> None:
-    """A Tune function trainable: one trial (``config["trial"]``), one result per episode."""
+    """A Tune function trainable: one trial (``config["trial"]``), one result per event (an episode,
+    a task's progress, a task, the evaluation)."""
     from ray import tune
 
     t = config["trial"]
